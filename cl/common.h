@@ -1,0 +1,39 @@
+/* Shared definitions for every endowave-cl kernel.  OpenCL C 1.2. */
+#ifndef ENDOWAVE_COMMON_H
+#define ENDOWAVE_COMMON_H
+
+/* Screen tiles are TILE x TILE pixels (3DGS / gsplat); one work-group per tile. */
+#ifndef TILE
+#define TILE 16
+#endif
+#define TILE_PIXELS (TILE * TILE)
+
+/* Add v to a float in global memory.  OpenCL 1.2 has no float atomics, so this is a
+ * compare-and-swap loop on the bit pattern.  The old value is read with an atomic
+ * (atomic_or(p, 0)) rather than a plain load so that Oclgrind sees no data race.
+ * Callers should first reduce in local memory so that each work-group issues one
+ * such add per destination. */
+inline void atomic_add_global_f(volatile __global float *p, float v) {
+    volatile __global int *pi = (volatile __global int *)p;
+    int old_bits = atomic_or(pi, 0);
+    while (1) {
+        float newv = as_float(old_bits) + v;
+        int prev = atomic_cmpxchg(pi, old_bits, as_int(newv));
+        if (prev == old_bits) break;
+        old_bits = prev;
+    }
+}
+
+/* Same for local memory (used for per-work-group reductions). */
+inline void atomic_add_local_f(volatile __local float *p, float v) {
+    volatile __local int *pi = (volatile __local int *)p;
+    int old_bits = atomic_or(pi, 0);
+    while (1) {
+        float newv = as_float(old_bits) + v;
+        int prev = atomic_cmpxchg(pi, old_bits, as_int(newv));
+        if (prev == old_bits) break;
+        old_bits = prev;
+    }
+}
+
+#endif

