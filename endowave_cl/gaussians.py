@@ -1,0 +1,102 @@
+"""The 4D Gaussian parameter set and its fixed memory layout.
+
+Every kernel and reference uses this layout (float32, C order):
+
+    means     [N, 4]          (x, y, z, t): 4D mean, world units and normalised time in [0, 1]
+    scales    [N, 4]          log of the standard deviations along the 4 principal axes (x, y, z, t)
+    quat_l    [N, 4]          left unit quaternion (w, x, y, z), stored unnormalised
+    quat_r    [N, 4]          right unit quaternion (w, x, y, z), stored unnormalised
+    opacity   [N]             logit of the opacity
+    sh        [N, NT+1, K, 3] TEASH coefficients c[n, k, rgb]; K = (L+1)^2 SH bases, n = 0..NT
+    phase     [N, NT+1]       learnable phase phi_n of each temporal frequency (phi_0 unused)
+
+TEASH colour (chosen convention, see README): tau = t (global time, as the paper writes),
+omega_n = 2 pi n / TEASH_PERIOD with TEASH_PERIOD = 2 (twice the normalised sequence length,
+so the first harmonic is not forced to repeat between the first and the last frame);
+colour = max(0, 0.5 + sum_{n,k} c[n,k] Y_k(d) cos(omega_n t + phi_n)), d the unit direction from
+the camera centre to the conditional mean at t.  phi_0 is unused: cos(0 * t + phi_0) is taken as 1.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Dict
+
+import numpy as np
+
+SH_DEGREE = 3          # L: spherical-harmonic degree (K = 16 bases)
+TEMPORAL_FREQS = 2     # NT: temporal frequencies n = 1..NT besides the constant n = 0
+TEASH_PERIOD = 2.0     # T in omega_n = 2 pi n / T, in normalised time units
+MARGINAL_CULL = 0.05   # a Gaussian whose marginal temporal weight is below this is skipped
+
+PARAM_NAMES = ("means", "scales", "quat_l", "quat_r", "opacity", "sh", "phase")
+
+
+def num_sh_bases(degree: int = SH_DEGREE) -> int:
+    return (degree + 1) ** 2
+
+
+@dataclass
+class Gaussians:
+    """Host (numpy) copy of the parameters; see the module docstring for the layout."""
+    means: np.ndarray    # [N, 4]
+    scales: np.ndarray   # [N, 4]
+    quat_l: np.ndarray   # [N, 4]
+    quat_r: np.ndarray   # [N, 4]
+    opacity: np.ndarray  # [N]
+    sh: np.ndarray       # [N, NT+1, K, 3]
+    phase: np.ndarray    # [N, NT+1]
+
+    def __post_init__(self):
+        for f in fields(self):
+            setattr(self, f.name, np.ascontiguousarray(getattr(self, f.name), dtype=np.float32))
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[2]))) - 1
+
+    @property
+    def temporal_freqs(self) -> int:
+        return int(self.sh.shape[1]) - 1
+
+    def as_dict(self) -> Dict[str, np.ndarray]:
+        return {n: getattr(self, n) for n in PARAM_NAMES}
+
+    @classmethod
+    def empty(cls, degree: int = SH_DEGREE, nt: int = TEMPORAL_FREQS) -> "Gaussians":
+        K = num_sh_bases(degree)
+        return cls(np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4)),
+                   np.zeros((0,)), np.zeros((0, nt + 1, K, 3)), np.zeros((0, nt + 1)))
+
+    @classmethod
+    def random(cls, n: int, seed: int = 0, degree: int = SH_DEGREE, nt: int = TEMPORAL_FREQS,
+               center=(0.0, 0.0, 3.0), spread=1.0, scale=0.05) -> "Gaussians":
+        """Random Gaussians in front of an identity camera; for tests and benchmarks."""
+        rng = np.random.default_rng(seed)
+        K = num_sh_bases(degree)
+        means = np.concatenate([np.asarray(center) + spread * rng.uniform(-1, 1, (n, 3)),
+                                rng.uniform(0, 1, (n, 1))], 1)
+        scales = np.log(scale * rng.uniform(0.5, 2.0, (n, 4)))
+        scales[:, 3] = np.log(rng.uniform(0.2, 1.0, n))
+        sh = 0.1 * rng.standard_normal((n, nt + 1, K, 3))
+        sh[:, 0, 0, :] = rng.uniform(-1, 1, (n, 3))
+        return cls(means, scales, rng.standard_normal((n, 4)), rng.standard_normal((n, 4)),
+                   rng.uniform(-2, 3, n), sh, rng.uniform(-np.pi, np.pi, (n, nt + 1)))
+
+
+def upload(rt, g: Gaussians) -> Dict[str, "object"]:
+    """Copy the parameters to the device: {name: pyopencl.array.Array} in the same layout."""
+    import pyopencl.array as cla
+    out = {}
+    for name, arr in g.as_dict().items():
+        # zero-sized buffers are not allowed in OpenCL: keep one padding element
+        out[name] = cla.to_device(rt.queue, arr if arr.size else np.zeros((1,), np.float32))
+        if not arr.size:
+            out[name] = out[name][:0]
+    return out
+
+
+def download(params) -> Gaussians:
+    return Gaussians(**{name: params[name].get() for name in PARAM_NAMES})

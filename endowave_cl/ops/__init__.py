@@ -1,0 +1,1 @@
+"""Host ops: each pairs an OpenCL forward kernel with its adjoint (see docs/ARCHITECTURE.md)."""

@@ -1,0 +1,47 @@
+"""numpy reference of tile binning, sorting and tile ranges (docs/ARCHITECTURE.md)."""
+from __future__ import annotations
+
+import numpy as np
+
+TILE = 16
+
+
+def tile_grid(width: int, height: int, tile: int = TILE):
+    return (width + tile - 1) // tile, (height + tile - 1) // tile
+
+
+def bin_gaussians_ref(rect: np.ndarray, depth: np.ndarray, radius: np.ndarray, tiles_x: int):
+    """Unsorted (keys, values) in the kernel's order: Gaussian by Gaussian, tiles row-major.
+
+    rect [N, 4] int (x0, y0, x1, y1) exclusive; depth [N] float32; radius [N] int.
+    """
+    keys, vals = [], []
+    dbits = np.ascontiguousarray(depth, np.float32).view(np.uint32).astype(np.uint64)
+    for i in range(len(depth)):
+        if radius[i] <= 0:
+            continue
+        x0, y0, x1, y1 = (int(v) for v in rect[i])
+        for ty in range(y0, y1):
+            for tx in range(x0, x1):
+                keys.append((np.uint64(ty * tiles_x + tx) << np.uint64(32)) | dbits[i])
+                vals.append(i)
+    return np.array(keys, np.uint64), np.array(vals, np.int32)
+
+
+def sort_pairs_ref(keys: np.ndarray, values: np.ndarray):
+    order = np.argsort(keys, kind="stable")
+    return keys[order], values[order]
+
+
+def tile_ranges_ref(sorted_keys: np.ndarray, n_tiles: int) -> np.ndarray:
+    """[n_tiles, 2] int32 (start, end) of each tile in the sorted list; (0, 0) when empty."""
+    ranges = np.zeros((n_tiles, 2), np.int32)
+    tiles = (sorted_keys >> np.uint64(32)).astype(np.int64)
+    if len(tiles):
+        ids = np.arange(n_tiles)
+        start = np.searchsorted(tiles, ids, "left")
+        end = np.searchsorted(tiles, ids, "right")
+        has = end > start
+        ranges[has, 0] = start[has]
+        ranges[has, 1] = end[has]
+    return ranges
