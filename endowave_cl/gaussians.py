@@ -89,13 +89,8 @@ class Gaussians:
 def upload(rt, g: Gaussians) -> Dict[str, "object"]:
     """Copy the parameters to the device: {name: pyopencl.array.Array} in the same layout."""
     import pyopencl.array as cla
-    out = {}
-    for name, arr in g.as_dict().items():
-        # zero-sized buffers are not allowed in OpenCL: keep one padding element
-        out[name] = cla.to_device(rt.queue, arr if arr.size else np.zeros((1,), np.float32))
-        if not arr.size:
-            out[name] = out[name][:0]
-    return out
+    # an empty scene gives zero-size arrays whose .data is None: ops return early for N = 0
+    return {name: cla.to_device(rt.queue, arr) for name, arr in g.as_dict().items()}
 
 
 def download(params) -> Gaussians:
