@@ -1,0 +1,106 @@
+"""The public render op: forward and adjoint of the whole splatting pipeline on the device.
+
+    project4d -> bin_and_sort (scan, bin, radix sort, ranges) -> rasterize
+
+``render`` returns a :class:`RenderOutput` holding the composited channels and what the
+adjoint needs; ``render_backward`` runs rasterize_bwd then project4d_bwd and returns the
+gradient of every parameter (and, when given, accumulates the densification statistics).
+Feature channels are ``[r, g, b, depth, flow_x, flow_y]`` (docs/ARCHITECTURE.md).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+
+from .camera import Camera
+
+CHANNELS = 6  # r, g, b, depth, flow_x, flow_y
+RGB, DEPTH, FLOW = slice(0, 3), 3, slice(4, 6)
+
+
+@dataclass
+class RenderOutput:
+    features: object            # cla [H, W, C]: composited r, g, b, depth, flow_x, flow_y
+    alpha: object               # cla [H, W]
+    camera: Camera
+    t: float
+    t_flow: Optional[float]
+    proj: object                # ops.project.Projected
+    raster: object              # ops.rasterize.RasterOut
+    sorted_values: object       # cla int32 [M]
+    tile_ranges: object         # cla int32 [n_tiles, 2]
+    n_isect: int                # M, number of (tile, Gaussian) pairs
+    timings: Dict[str, float] = field(default_factory=dict)  # ms per stage when timed
+
+    def host(self) -> Dict[str, np.ndarray]:
+        """Download: image [H,W,3], depth [H,W], flow [H,W,2], alpha [H,W] as numpy arrays."""
+        f = self.features.get()
+        return {"image": f[..., RGB], "depth": f[..., DEPTH], "flow": f[..., FLOW], "alpha": self.alpha.get()}
+
+
+def _tick(rt, timings, name, t0, timed):
+    if timed:
+        rt.queue.finish()
+        t1 = time.perf_counter()
+        timings[name] = (t1 - t0) * 1e3
+        return t1
+    return t0
+
+
+def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Optional[float] = None,
+           timed: bool = False) -> RenderOutput:
+    """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``."""
+    from .ops.binning import bin_and_sort
+    from .ops.project import project4d
+    from .ops.rasterize import rasterize
+
+    timings: Dict[str, float] = {}
+    t0 = time.perf_counter()
+    if timed:
+        rt.queue.finish()
+    proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
+    t0 = _tick(rt, timings, "project", t0, timed)
+    sorted_values, tile_ranges, n_isect = bin_and_sort(
+        rt, proj.rect, proj.depth, proj.radius, proj.tiles_touched, camera.width, camera.height)
+    t0 = _tick(rt, timings, "bin_sort", t0, timed)
+    raster = rasterize(rt, proj.means2d, proj.conic, proj.opac, proj.features, sorted_values, tile_ranges,
+                       camera.width, camera.height)
+    _tick(rt, timings, "rasterize", t0, timed)
+    if timed:
+        timings["total"] = sum(timings.values())
+    return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, raster, sorted_values, tile_ranges,
+                        int(n_isect), timings)
+
+
+def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
+                    densify_stats: Optional[Dict[str, object]] = None, timed: bool = False) -> Dict[str, object]:
+    """Gradients of every parameter from the gradient images.
+
+    v_features: cla [H, W, C] gradient of the loss w.r.t. the composited channels;
+    v_alpha: cla [H, W] or None (zero); densify_stats: optional dict of device arrays
+    grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
+    Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
+    """
+    import pyopencl.array as cla
+
+    from .ops.project import project4d_bwd
+    from .ops.rasterize import accumulate_densify_stats, rasterize_bwd
+
+    cam = out.camera
+    if v_alpha is None:
+        v_alpha = cla.zeros(rt.queue, (cam.height, cam.width), np.float32)
+    t0 = time.perf_counter()
+    p = out.proj
+    v2d = rasterize_bwd(rt, p.means2d, p.conic, p.opac, p.features, out.sorted_values, out.tile_ranges,
+                        cam.width, cam.height, out.raster, v_features, v_alpha)
+    t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
+    if densify_stats is not None and len(params["means"]):
+        accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,
+                                 densify_stats["grad_accum"], densify_stats["count"], densify_stats["max_radius"])
+    grads = project4d_bwd(rt, params, cam, out.t, out.t_flow, p, v2d["v_means2d"], v2d["v_conic"],
+                          v2d["v_opac"], v2d["v_features"])
+    _tick(rt, out.timings, "project_bwd", t0, timed)
+    return grads
