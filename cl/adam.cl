@@ -1,0 +1,65 @@
+/* Adam on the device: one launch updates every parameter group.
+ *
+ * The global id runs over the concatenation of the groups' flattened elements:
+ * [0, n0) is group 0, [n0, n0 + n1) group 1, ... (host order: means, scales,
+ * quat_l, quat_r, opacity, sh, phase; see endowave_cl/ops/adam.py).
+ *
+ * Per-element learning rate inside a group: an element at column c = j % row_len
+ * of its row uses lr_a when c < split, else lr_b.  This gives
+ *   means:  row_len 4, split 3  -> x, y, z at the (decayed) position lr, t at lr_b;
+ *   sh:     row_len (NT+1)*K*3, split 3 -> the DC term of n = 0 at lr_a, the rest lr_b;
+ *   others: split = row_len (one lr).
+ * An element whose lr is 0 is frozen: neither the parameter nor its moments change.
+ *
+ * Bias-corrected Adam exactly as torch.optim.Adam (no weight decay, no amsgrad):
+ *   m = b1 m + (1 - b1) g;  v = b2 v + (1 - b2) g^2
+ *   p -= (lr / bc1) * m / (sqrt(v) / sqrt(bc2) + eps),  bc1 = 1 - b1^t, bc2 = 1 - b2^t
+ * The host passes omb1 = 1 - b1 and omb2 = 1 - b2 (rounded from double, as torch does:
+ * 1.0f - 0.999f is 1.3e-5 off), inv_bc1 = 1 / bc1 and inv_sqrt_bc2 = 1 / sqrt(bc2).
+ */
+#include "common.h"
+
+#define GROUP_ARGS(k)                                                                   \
+    __global float *p##k, __global const float *g##k, __global float *m##k,             \
+    __global float *v##k, const int n##k, const int row##k, const int split##k,         \
+    const float lra##k, const float lrb##k
+
+#define GROUP_DISPATCH(k)                                                               \
+    if (i < n##k) {                                                                     \
+        adam_element(p##k, g##k, m##k, v##k, i, row##k, split##k, lra##k, lrb##k,       \
+                     beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);                         \
+        return;                                                                         \
+    }                                                                                   \
+    i -= n##k;
+
+inline void adam_element(__global float *p, __global const float *g, __global float *m,
+                         __global float *v, const int j, const int row, const int split,
+                         const float lra, const float lrb, const float beta1, const float beta2,
+                         const float omb1, const float omb2, const float eps, const float inv_bc1,
+                         const float inv_sqrt_bc2) {
+    const float lr = ((j % row) < split) ? lra : lrb;
+    if (lr == 0.0f) return;
+    const float gj = g[j];
+    const float mj = beta1 * m[j] + omb1 * gj;
+    const float vj = beta2 * v[j] + omb2 * gj * gj;
+    m[j] = mj;
+    v[j] = vj;
+    const float denom = sqrt(vj) * inv_sqrt_bc2 + eps;
+    p[j] -= (lr * inv_bc1) * mj / denom;
+}
+
+__kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(3),
+                        GROUP_ARGS(4), GROUP_ARGS(5), GROUP_ARGS(6),
+                        const float beta1, const float beta2,
+                        const float omb1, const float omb2, const float eps,
+                        const float inv_bc1, const float inv_sqrt_bc2) {
+    int i = get_global_id(0);
+    GROUP_DISPATCH(0)
+    GROUP_DISPATCH(1)
+    GROUP_DISPATCH(2)
+    GROUP_DISPATCH(3)
+    GROUP_DISPATCH(4)
+    GROUP_DISPATCH(5)
+    GROUP_DISPATCH(6)
+    /* past the last group: a padding work-item, nothing to do */
+}

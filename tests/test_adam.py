@@ -1,0 +1,174 @@
+"""Device Adam (cl/adam.cl, ops/adam.py) against the numpy reference and torch.optim.Adam."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import small
+from endowave_cl.errors import EndowaveError
+from endowave_cl.gaussians import PARAM_NAMES, Gaussians, upload
+from endowave_cl.ops.adam import (ADAM_EPS, DeviceAdam, element_lrs, group_lr_layout, position_lr)
+from endowave_cl.reference.adam import adam_step
+
+LRS = {"means": 1.6e-4, "means_t": 1e-3, "scales": 5e-3, "quat_l": 1e-3, "quat_r": 2e-3,
+       "opacity": 0.05, "sh": 2.5e-3, "phase": 4e-3}
+
+
+def _grads(g: Gaussians, rng) -> dict:
+    return {n: rng.standard_normal(a.shape).astype(np.float32) * rng.uniform(0.01, 2.0)
+            for n, a in g.as_dict().items()}
+
+
+def _run_both(rt, g, steps, lr_sched, seed=0):
+    """Run the device Adam and the reference side by side; returns (device params, ref params)."""
+    rng = np.random.default_rng(seed)
+    params = upload(rt, g)
+    opt = DeviceAdam(rt, params, lr_sched(0))
+    ref = {n: a.copy() for n, a in g.as_dict().items()}
+    m = {n: np.zeros_like(a) for n, a in ref.items()}
+    v = {n: np.zeros_like(a) for n, a in ref.items()}
+    for s in range(steps):
+        lrs = lr_sched(s)
+        grads = _grads(g, rng)
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, lrs)
+        for n in PARAM_NAMES:
+            lr = element_lrs(n, ref[n].shape, opt.lrs)
+            ref[n], m[n], v[n] = adam_step(ref[n], grads[n], m[n], v[n], lr, s + 1)
+    out = {n: params[n].get() for n in PARAM_NAMES}
+    st = opt.state_dict()
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(st["exp_avg"][n], m[n], rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(st["exp_avg_sq"][n], v[n], rtol=1e-5, atol=1e-9)
+    return out, ref
+
+
+def _to_dev(rt, a):
+    import pyopencl.array as cla
+    return cla.to_device(rt.queue, np.ascontiguousarray(a, np.float32))
+
+
+def test_adam_matches_reference_over_steps_with_changing_lrs(rt):
+    g = Gaussians.random(small(37, 3), seed=1)
+
+    def sched(s):
+        d = dict(LRS)
+        d["means"] = position_lr(s, 5, extent=2.0)
+        d["scales"] = 0.0  # frozen group
+        return d
+
+    dev, ref = _run_both(rt, g, steps=small(5, 2), lr_sched=sched)
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
+    np.testing.assert_array_equal(dev["scales"], g.scales)  # lr 0: untouched
+    assert not np.array_equal(dev["opacity"], g.opacity)
+
+
+@pytest.mark.oclgrind
+def test_adam_tiny_oclgrind(rt):
+    g = Gaussians.random(2, seed=2, degree=1, nt=1)
+    dev, ref = _run_both(rt, g, steps=2, lr_sched=lambda s: LRS)
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
+
+
+def test_adam_matches_torch(rt):
+    torch = pytest.importorskip("torch")
+    g = Gaussians.random(small(29, 2), seed=3)
+    lrs = {n: LRS[n] for n in PARAM_NAMES}
+    lrs["sh_rest"] = lrs["sh"]  # torch groups are whole tensors: one lr per group here
+    lrs["means_t"] = 7e-4
+    params = upload(rt, g)
+    opt = DeviceAdam(rt, params, lrs)
+    tp = {n: torch.tensor(a, requires_grad=True) for n, a in g.as_dict().items() if n != "means"}
+    txyz = torch.tensor(g.means[:, :3], requires_grad=True)
+    tt = torch.tensor(g.means[:, 3:], requires_grad=True)
+    groups = [{"params": [tp[n]], "lr": lrs[n]} for n in tp]
+    groups += [{"params": [txyz], "lr": lrs["means"]}, {"params": [tt], "lr": lrs["means_t"]}]
+    topt = torch.optim.Adam(groups, betas=(0.9, 0.999), eps=ADAM_EPS)
+    rng = np.random.default_rng(4)
+    for _ in range(4):
+        grads = _grads(g, rng)
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()})
+        for n in tp:
+            tp[n].grad = torch.tensor(grads[n])
+        txyz.grad = torch.tensor(grads["means"][:, :3])
+        tt.grad = torch.tensor(grads["means"][:, 3:])
+        topt.step()
+    for n in tp:
+        np.testing.assert_allclose(params[n].get(), tp[n].detach().numpy(), rtol=1e-5, atol=2e-6, err_msg=n)
+    means = params["means"].get()
+    np.testing.assert_allclose(means[:, :3], txyz.detach().numpy(), rtol=1e-5, atol=2e-6)
+    np.testing.assert_allclose(means[:, 3:], tt.detach().numpy(), rtol=1e-5, atol=2e-6)
+
+
+def test_lr_layout_means_time_and_sh_dc():
+    lr = element_lrs("means", (5, 4), LRS)
+    assert np.all(lr[:, :3] == np.float32(LRS["means"])) and np.all(lr[:, 3] == np.float32(LRS["means_t"]))
+    sh_shape = (4, 3, 16, 3)
+    lr = element_lrs("sh", sh_shape, LRS)
+    assert np.all(lr[:, 0, 0, :] == np.float32(LRS["sh"]))
+    rest = np.ones(sh_shape, bool)
+    rest[:, 0, 0, :] = False
+    assert np.all(lr[rest] == np.float32(LRS["sh"] / 20))
+    # defaults: means_t falls back to the means lr
+    assert group_lr_layout("means", (2, 4), {"means": 0.5})[3] == 0.5
+    with pytest.raises(EndowaveError, match="opacity"):
+        group_lr_layout("opacity", (3,), {"means": 1.0})
+
+
+def test_empty_scene_and_shape_errors(rt):
+    g = Gaussians.empty()
+    params = upload(rt, g)
+    opt = DeviceAdam(rt, params, LRS)
+    opt.step({n: _to_dev(rt, a) for n, a in g.as_dict().items()})
+    st = opt.state_dict()
+    assert st["step"] == 1 and st["exp_avg"]["sh"].shape == (0, 3, 16, 3)
+    g2 = Gaussians.random(3)
+    opt2 = DeviceAdam(rt, upload(rt, g2), LRS)
+    bad = {n: _to_dev(rt, a) for n, a in g2.as_dict().items()}
+    bad["opacity"] = _to_dev(rt, np.zeros(4, np.float32))
+    with pytest.raises(EndowaveError, match="opacity"):
+        opt2.step(bad)
+
+
+def test_state_dict_round_trip_and_remap(rt):
+    g = Gaussians.random(6, seed=5)
+    params = upload(rt, g)
+    opt = DeviceAdam(rt, params, LRS)
+    rng = np.random.default_rng(6)
+    for _ in range(2):
+        opt.step({n: _to_dev(rt, a) for n, a in _grads(g, rng).items()})
+    st = opt.state_dict()
+    opt2 = DeviceAdam(rt, upload(rt, g), LRS)
+    opt2.load_state_dict(st)
+    st2 = opt2.state_dict()
+    assert st2["step"] == 2
+    for n in PARAM_NAMES:
+        np.testing.assert_array_equal(st2["exp_avg_sq"][n], st["exp_avg_sq"][n])
+    # remap: rows 4, 0 kept, a new row, a copy of row 0
+    src = np.array([4, 0, -1, 0])
+    g_new = Gaussians(**{n: a[np.maximum(src, 0)] for n, a in g.as_dict().items()})
+    opt.remap(upload(rt, g_new), src)
+    st3 = opt.state_dict()
+    for n in PARAM_NAMES:
+        for key in ("exp_avg", "exp_avg_sq"):
+            np.testing.assert_array_equal(st3[key][n][[0, 1, 3]], st[key][n][[4, 0, 0]])
+            assert np.all(st3[key][n][2] == 0)
+    assert st3["step"] == 2
+    with pytest.raises(EndowaveError, match="source_index"):
+        opt.remap(upload(rt, g_new), np.array([0, 1]))
+    with pytest.raises(EndowaveError, match="shape"):
+        bad = dict(st)
+        bad["exp_avg"] = dict(st["exp_avg"], opacity=np.zeros(2, np.float32))
+        opt2.load_state_dict(bad)
+
+
+def test_position_lr_schedule():
+    assert math.isclose(position_lr(0, 100), 1.6e-4, rel_tol=1e-9)
+    assert math.isclose(position_lr(100, 100), 1.6e-6, rel_tol=1e-9)
+    assert math.isclose(position_lr(500, 100), 1.6e-6, rel_tol=1e-9)  # clamped after the end
+    assert math.isclose(position_lr(50, 100), 1.6e-5, rel_tol=1e-9)   # geometric midpoint
+    assert math.isclose(position_lr(50, 100, extent=3.0), 4.8e-5, rel_tol=1e-9)
+    assert position_lr(10, 100) > position_lr(11, 100)
