@@ -1,0 +1,102 @@
+"""Stable LSD radix sort of (uint64 key, int32 value) pairs on the device (cl/sort.cl).
+
+Per pass: block histograms -> exclusive scan of the [digit, block] counts (ops/scan.py) ->
+stable scatter into the other ping-pong buffer.  Only ``ceil(num_bits / radix_bits)`` passes
+run, so keys must have no set bit at or above ``passes * radix_bits`` that should matter.
+The result equals numpy's ``argsort(kind='stable')`` order exactly.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+import pyopencl.array as cla
+
+from endowave_cl.ops.scan import exclusive_scan_into
+
+KEY_BITS = 64  # keys are uint64
+
+
+@dataclass(frozen=True)
+class SortConfig:
+    """Tuning of the sort; see tools/bench_sort.py.
+
+    radix_bits: digit width (passes = ceil(num_bits / radix_bits)).
+    wg: work-items per group (local memory = 2^radix_bits * wg ints).
+    items_min / items_max: bounds on the consecutive keys each work-item walks.
+    groups_per_cu: how many work-groups per compute unit to aim for when picking items.
+    """
+    radix_bits: int = 8
+    wg: int = 16
+    items_min: int = 16
+    items_max: int = 1 << 14
+    groups_per_cu: int = 8
+
+    def options(self):
+        return [f"-DRADIX_BITS={self.radix_bits}", f"-DSORT_WG={self.wg}"]
+
+    def items_for(self, n: int, compute_units: int) -> int:
+        target = max(1, self.groups_per_cu * compute_units)
+        items = -(-n // (target * self.wg))
+        return int(min(self.items_max, max(self.items_min, items)))
+
+
+# CPU (PoCL): few wide passes, long serial chunks, a handful of groups per core.
+CPU_CONFIG = SortConfig(radix_bits=8, wg=16, items_min=16, items_max=1 << 14, groups_per_cu=8)
+# GPU: narrow digits so that the [digit, work-item] table fits local memory with many
+# work-items; short chunks so that there are thousands of work-groups.
+GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_per_cu=64)
+
+
+def default_config(rt) -> SortConfig:
+    return GPU_CONFIG if rt.is_gpu else CPU_CONFIG
+
+
+def sort_passes(num_bits: int, radix_bits: int) -> int:
+    """Passes needed for the low ``num_bits`` bits (rounded up to whole digits)."""
+    num_bits = max(0, min(KEY_BITS, int(num_bits)))
+    return -(-num_bits // radix_bits)
+
+
+def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY_BITS,
+                     config: Optional[SortConfig] = None) -> Tuple[cla.Array, cla.Array]:
+    """(keys_sorted [n] uint64, values_sorted [n] int32), stable by the low num_bits bits
+    (rounded up to whole digits).  The inputs are left unchanged."""
+    if keys.dtype != np.uint64 or values.dtype != np.int32:
+        raise TypeError(f"radix_sort_pairs takes uint64 keys and int32 values, got {keys.dtype}, {values.dtype}")
+    n = int(keys.size)
+    if int(values.size) != n:
+        raise ValueError(f"keys [{n}] and values [{values.size}] differ in length")
+    cfg = config or default_config(rt)
+    passes = sort_passes(num_bits, cfg.radix_bits)
+    if n == 0 or passes == 0:
+        return keys.copy(), values.copy()
+    if n >= 2 ** 31 - cfg.wg * cfg.items_max:
+        raise ValueError(f"radix_sort_pairs handles fewer than 2^31 keys, got {n}")
+
+    q = rt.queue
+    items = cfg.items_for(n, rt.compute_units)
+    n_blocks = -(-n // (cfg.wg * items))
+    radix = 1 << cfg.radix_bits
+    hist = cla.empty(q, radix * n_blocks, np.int32)     # [radix, n_blocks]
+    offsets = cla.empty(q, radix * n_blocks, np.int32)  # [radix, n_blocks]
+    bufs = [(cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32))]
+    if passes > 1:
+        bufs.append((cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32)))
+
+    k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
+    k_scatter = rt.kernel("sort.cl", "radix_scatter", cfg.options())
+    gsize = (n_blocks * cfg.wg,)
+    lsize = (cfg.wg,)
+    src_k, src_v = keys, values
+    for p in range(passes):
+        shift = np.int32(p * cfg.radix_bits)
+        dst_k, dst_v = bufs[p % 2]
+        k_hist(q, gsize, lsize, src_k.data, np.int32(n), np.int32(items), shift,
+               np.int32(n_blocks), hist.data)
+        exclusive_scan_into(rt, hist, hist.size, offsets, offsets.size)
+        k_scatter(q, gsize, lsize, src_k.data, src_v.data, np.int32(n), np.int32(items), shift,
+                  np.int32(n_blocks), offsets.data, dst_k.data, dst_v.data)
+        src_k, src_v = dst_k, dst_v
+    return src_k, src_v

@@ -1,0 +1,208 @@
+"""Exclusive scan (cl/scan.cl) and the radix sort (cl/sort.cl) against numpy, exactly.
+
+Integer ops have no adjoint; every case compares the device result with the numpy reference
+bit for bit.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from conftest import small
+from endowave_cl.ops import scan as S
+from endowave_cl.ops import sort as R
+from endowave_cl.reference.binning import sort_pairs_ref
+from endowave_cl.reference.scan import exclusive_scan as exclusive_scan_ref
+from endowave_cl.reference.scan import radix_histogram as radix_histogram_ref
+from endowave_cl.reference.scan import radix_scatter as radix_scatter_ref
+
+# Small configurations that make block boundaries fall inside small inputs, and exercise
+# work-groups with more work-items than radix digits and the other way round.
+TINY_CONFIGS = [
+    R.SortConfig(radix_bits=4, wg=4, items_min=3, items_max=3, groups_per_cu=1),
+    R.SortConfig(radix_bits=8, wg=2, items_min=5, items_max=5, groups_per_cu=1),
+    R.SortConfig(radix_bits=3, wg=32, items_min=1, items_max=2, groups_per_cu=1),
+]
+
+
+def _keys(rng, n, n_tiles=300, n_depths=40):
+    """uint64 binning-like keys with many duplicates: (tile << 32) | depth bits."""
+    tiles = rng.integers(0, n_tiles, n).astype(np.uint64)
+    depths = rng.uniform(0.1, 5.0, n_depths).astype(np.float32).view(np.uint32).astype(np.uint64)
+    return (tiles << np.uint64(32)) | depths[rng.integers(0, n_depths, n)]
+
+
+def _sort_and_check(rt, keys, num_bits, config=None):
+    q = rt.queue
+    vals = np.arange(len(keys), dtype=np.int32)  # value = original index: checks stability
+    dk, dv = cla.to_device(q, keys), cla.to_device(q, vals)
+    sk, sv = R.radix_sort_pairs(rt, dk, dv, num_bits, config)
+    ref_k, ref_v = sort_pairs_ref(keys, vals)
+    np.testing.assert_array_equal(sv.get(), ref_v)
+    np.testing.assert_array_equal(sk.get(), ref_k)
+    np.testing.assert_array_equal(dk.get(), keys)  # inputs untouched
+    np.testing.assert_array_equal(dv.get(), vals)
+
+
+# --- scan -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("n", [0, 1, 255, 256, 257, S.SCAN_BLOCK - 1, S.SCAN_BLOCK, S.SCAN_BLOCK + 1,
+                               100003, S.SCAN_BLOCK * S.SCAN_BLOCK + 5])
+def test_exclusive_scan_matches_cumsum(rt, n):
+    rng = np.random.default_rng(n)
+    x = rng.integers(0, 50, n).astype(np.int32)
+    off, total = S.exclusive_scan(rt, cla.to_device(rt.queue, x))
+    ref, ref_total = exclusive_scan_ref(x)
+    assert off.shape == (n,) and off.dtype == np.int32
+    np.testing.assert_array_equal(off.get(), ref)
+    assert total == ref_total == int(x.sum())
+
+
+def test_exclusive_scan_random_sizes_and_negatives(rt):
+    rng = np.random.default_rng(7)
+    for n in rng.integers(1, 20000, 5):
+        x = rng.integers(-1000, 1000, n).astype(np.int32)
+        off, total = S.exclusive_scan(rt, cla.to_device(rt.queue, x))
+        ref, ref_total = exclusive_scan_ref(x)
+        np.testing.assert_array_equal(off.get(), ref)
+        assert total == ref_total
+
+
+def test_exclusive_scan_rejects_other_dtypes(rt):
+    with pytest.raises(TypeError):
+        S.exclusive_scan(rt, cla.to_device(rt.queue, np.arange(4, dtype=np.float32)))
+
+
+@pytest.mark.oclgrind
+def test_exclusive_scan_tiny(rt):
+    rng = np.random.default_rng(3)
+    n = small(3 * S.SCAN_BLOCK + 7, S.SCAN_BLOCK + 3)  # two levels of block sums
+    x = rng.integers(0, 9, n).astype(np.int32)
+    off, total = S.exclusive_scan(rt, cla.to_device(rt.queue, x))
+    ref, ref_total = exclusive_scan_ref(x)
+    np.testing.assert_array_equal(off.get(), ref)
+    assert total == ref_total
+
+
+# --- the sort's pieces --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.CPU_CONFIG, R.GPU_CONFIG])
+def test_radix_histogram_and_scatter_pass(rt, cfg):
+    """One pass's kernels, each against its reference."""
+    rng = np.random.default_rng(11)
+    n = 1237
+    keys = rng.integers(0, 2 ** 63, n, dtype=np.uint64)
+    vals = rng.integers(-5, 5, n).astype(np.int32)
+    shift = 7
+    items = cfg.items_for(n, rt.compute_units)
+    n_blocks = -(-n // (cfg.wg * items))
+    radix = 1 << cfg.radix_bits
+    q = rt.queue
+    dk, dv = cla.to_device(q, keys), cla.to_device(q, vals)
+    hist = cla.empty(q, radix * n_blocks, np.int32)
+    k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
+    k_hist(q, (n_blocks * cfg.wg,), (cfg.wg,), dk.data, np.int32(n), np.int32(items),
+           np.int32(shift), np.int32(n_blocks), hist.data)
+    ref_hist = radix_histogram_ref(keys, shift, cfg.radix_bits, cfg.wg * items)
+    np.testing.assert_array_equal(hist.get().reshape(radix, n_blocks), ref_hist)
+
+    offsets = cla.to_device(q, exclusive_scan_ref(ref_hist.ravel())[0])
+    ok, ov = cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32)
+    k_sc = rt.kernel("sort.cl", "radix_scatter", cfg.options())
+    k_sc(q, (n_blocks * cfg.wg,), (cfg.wg,), dk.data, dv.data, np.int32(n), np.int32(items),
+         np.int32(shift), np.int32(n_blocks), offsets.data, ok.data, ov.data)
+    ref_k, ref_v = radix_scatter_ref(keys, vals, shift, cfg.radix_bits)
+    np.testing.assert_array_equal(ok.get(), ref_k)
+    np.testing.assert_array_equal(ov.get(), ref_v)
+
+
+# --- the whole sort -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("n", [0, 1, 2, 13, 255, 4095, 4096, 4097, 100_000])
+def test_sort_matches_stable_argsort(rt, n):
+    rng = np.random.default_rng(n + 1)
+    _sort_and_check(rt, _keys(rng, n), num_bits=64)
+
+
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.GPU_CONFIG])
+@pytest.mark.parametrize("n", [1, 11, 24, 25, 97, 3000])
+def test_sort_block_boundaries_any_config(rt, cfg, n):
+    """Sizes around multiples of the block size (wg * items) for several digit widths."""
+    rng = np.random.default_rng(n)
+    _sort_and_check(rt, _keys(rng, n, n_tiles=7, n_depths=5), num_bits=44, config=cfg)
+
+
+def test_sort_all_equal_keys_keeps_input_order(rt):
+    _sort_and_check(rt, np.full(5000, 12345, np.uint64), num_bits=64)
+
+
+def test_sort_full_64_bit_keys(rt):
+    rng = np.random.default_rng(5)
+    keys = rng.integers(0, 2 ** 64 - 1, 20000, dtype=np.uint64, endpoint=True)
+    keys[:100] = keys[100:200]  # duplicates
+    keys[200] = np.uint64(2 ** 64 - 1)
+    keys[201] = 0
+    _sort_and_check(rt, keys, num_bits=64)
+
+
+@pytest.mark.parametrize("num_bits", [1, 5, 32, 33, 43, 44])
+def test_sort_only_needed_bits(rt, num_bits):
+    """With num_bits, the sort runs ceil(num_bits / radix_bits) passes: keys below 2^num_bits
+    come out fully sorted, and bits above the passes' reach are ignored (order by the low bits,
+    stable)."""
+    rng = np.random.default_rng(num_bits)
+    cfg = R.default_config(rt)
+    n = 3000
+    low = rng.integers(0, 2 ** num_bits, n, dtype=np.uint64)
+    low[: n // 2] = low[n // 2:]  # duplicates
+    _sort_and_check(rt, low, num_bits=num_bits, config=cfg)
+
+    reach = R.sort_passes(num_bits, cfg.radix_bits) * cfg.radix_bits
+    if reach < 64:
+        high = rng.integers(1, 2 ** (64 - reach), n, dtype=np.uint64) << np.uint64(reach)
+        keys = low | high
+        vals = np.arange(n, dtype=np.int32)
+        sk, sv = R.radix_sort_pairs(rt, cla.to_device(rt.queue, keys), cla.to_device(rt.queue, vals),
+                                    num_bits, cfg)
+        order = np.argsort(low, kind="stable")  # low == keys masked to the passes' reach
+        np.testing.assert_array_equal(sv.get(), order)
+        np.testing.assert_array_equal(sk.get(), keys[order])
+
+
+def test_sort_passes():
+    assert R.sort_passes(44, 8) == 6 and R.sort_passes(44, 4) == 11 and R.sort_passes(48, 8) == 6
+    assert R.sort_passes(0, 8) == 0 and R.sort_passes(100, 8) == 8
+
+
+def test_sort_values_are_arbitrary_payload(rt):
+    rng = np.random.default_rng(9)
+    n = 7777
+    keys = _keys(rng, n)
+    vals = rng.integers(-2 ** 31, 2 ** 31 - 1, n).astype(np.int32)
+    sk, sv = R.radix_sort_pairs(rt, cla.to_device(rt.queue, keys), cla.to_device(rt.queue, vals), 64)
+    ref_k, ref_v = sort_pairs_ref(keys, vals)
+    np.testing.assert_array_equal(sk.get(), ref_k)
+    np.testing.assert_array_equal(sv.get(), ref_v)
+
+
+def test_sort_rejects_bad_inputs(rt):
+    q = rt.queue
+    with pytest.raises(TypeError):
+        R.radix_sort_pairs(rt, cla.zeros(q, 4, np.int64), cla.zeros(q, 4, np.int32))
+    with pytest.raises(ValueError):
+        R.radix_sort_pairs(rt, cla.zeros(q, 4, np.uint64), cla.zeros(q, 3, np.int32))
+
+
+@pytest.mark.slow
+def test_sort_ten_million(rt):
+    rng = np.random.default_rng(10)
+    _sort_and_check(rt, _keys(rng, 10_000_000, n_tiles=1280, n_depths=100_000), num_bits=43)
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_CONFIG, TINY_CONFIGS[0]])
+def test_sort_tiny(rt, cfg):
+    rng = np.random.default_rng(1)
+    n = small(1000, 1000)
+    _sort_and_check(rt, _keys(rng, n, n_tiles=20, n_depths=10), num_bits=37, config=cfg)
