@@ -1,0 +1,81 @@
+"""Atomic writes: a file or a folder appears complete under its final name, or not at all."""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def _tmp_path(final: Path) -> Path:
+    fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    os.close(fd)
+    return Path(name)
+
+
+def write_bytes_atomic(path, data: bytes) -> None:
+    """Write ``data`` to a temporary file beside ``path``, then rename it onto ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def save_npy_atomic(path, array: np.ndarray) -> None:
+    """``np.save`` through a temporary file and a rename."""
+    import io
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(array), allow_pickle=False)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def save_png(path, image: np.ndarray) -> None:
+    """Encode ``image`` (uint8 or uint16, [H, W] or [H, W, 3] in BGR order) as PNG, atomically."""
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    write_bytes_atomic(path, buf.tobytes())
+
+
+@contextlib.contextmanager
+def atomic_directory(final, force: bool = False):
+    """Yield a temporary folder beside ``final``; on success it replaces ``final``.
+
+    ``final`` must be absent or empty unless ``force`` is true (then the old content is
+    removed only after the new folder is complete).  On any error the temporary folder is
+    deleted and ``final`` is left as it was.
+    """
+    from ..errors import DataError
+    final = Path(final)
+    if final.exists():
+        if not final.is_dir():
+            raise DataError(f"{final}: exists and is not a folder")
+        if any(final.iterdir()) and not force:
+            raise DataError(f"{final}: folder is not empty (use --force to replace it)")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+        os.rmdir(old)
+        os.replace(final, old)
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

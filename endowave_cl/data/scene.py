@@ -1,0 +1,234 @@
+"""Loader for scenes in the EndoNeRF layout (see docs/DATA.md).
+
+::
+
+    scene/
+      images/*.png        RGB frames, sorted by name = frame order
+      depth/*.png         optional, raw 8/16-bit depth, 0 = invalid
+      masks/*.png         optional, 255 = tool (returned inverted: 1 = tissue to supervise)
+      poses_bounds.npy    [N, 17]: LLFF pose 3x5 [R | t | hwf] per frame, then near, far
+      scene.json          optional: {"depth_scale": scene units per raw depth count,
+                                     "hwf_layout": "hwf" | "cy_cx_f"}
+
+Frames of the three folders are paired by sorted order and their counts must agree.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional
+
+import cv2
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DataError
+from .images import list_images, read_depth_raw, read_rgb, read_tissue_mask
+from .llff import HWF_LAYOUTS, intrinsics_from_hwf, llff_to_viewmat, read_poses_bounds
+
+# EndoNeRF-style loaders (EndoNeRF, Deform3DGS) clip each depth map to these percentiles of its
+# valid pixels to drop stereo-matching outliers.
+DEFAULT_DEPTH_PERCENTILES = (3.0, 99.8)
+# Every TEST_EVERY-th frame starting at frame 1 is a test frame: (i - 1) % 8 == 0.
+TEST_EVERY = 8
+# A downscaled mask pixel counts as tissue only if all full-size pixels under it were tissue
+# (area-averaged value at least this).
+MASK_KEEP = 0.999
+
+
+@dataclass
+class Frame:
+    index: int                     # position in the sequence, 0..N-1
+    time: float                    # index / (N - 1), in [0, 1]
+    image: np.ndarray              # [H, W, 3] float32 RGB in [0, 1]
+    depth: Optional[np.ndarray]    # [H, W] float32 in scene units (file units without depth_scale), 0 = invalid
+    mask: Optional[np.ndarray]     # [H, W] float32, 1 = tissue to supervise, 0 = tool
+    camera: Camera                 # OpenCV convention, world -> camera viewmat
+    name: str = ""                 # stem of the image file, e.g. "000012"
+
+
+@dataclass
+class Scene:
+    path: Path
+    frames: List[Frame]
+    train_indices: List[int]
+    test_indices: List[int]
+    near: float                    # min of the near bounds in poses_bounds.npy
+    far: float                     # max of the far bounds
+    width: int
+    height: int
+    has_depth: bool
+    has_masks: bool
+    downscale: float = 1.0
+    depth_scale: Optional[float] = None   # from scene.json; None = depth in raw file units
+    hwf_layout: str = "hwf"
+    info: dict = field(default_factory=dict)   # scene.json content
+
+    def summary(self) -> str:
+        """One line: what was found and what the trainer will do with it."""
+        n = len(self.frames)
+        parts = [f"{n} frames", f"{self.width}x{self.height}"]
+        if self.downscale != 1:
+            parts[-1] += f" (downscale {self.downscale:g})"
+        parts.append("depth" if self.has_depth else "no depth")
+        parts.append("masks" if self.has_masks else "no masks")
+        effects = ["depth loss " + ("on" if self.has_depth else "off")]
+        effects.append("tool pixels excluded" if self.has_masks else "every pixel supervised")
+        split = f"{len(self.train_indices)} train / {len(self.test_indices)} test"
+        return f"{', '.join(parts)}: {', '.join(effects)}; {split}"
+
+
+def split_indices(n: int, test_every: int = TEST_EVERY):
+    """EndoNeRF split: frames with (i - 1) % test_every == 0 are test frames, the rest train."""
+    test = [i for i in range(n) if (i - 1) % test_every == 0]
+    train = [i for i in range(n) if (i - 1) % test_every != 0]
+    return train, test
+
+
+def _read_scene_json(path: Path) -> dict:
+    f = path / "scene.json"
+    if not f.is_file():
+        return {}
+    try:
+        info = json.loads(f.read_text())
+    except (OSError, ValueError) as e:
+        raise DataError(f"{f}: not valid JSON ({e})") from None
+    if not isinstance(info, dict):
+        raise DataError(f"{f}: expected a JSON object")
+    if "depth_scale" in info:
+        s = info["depth_scale"]
+        if not isinstance(s, (int, float)) or not s > 0:
+            raise DataError(f"{f}: depth_scale must be a positive number, got {s!r}")
+    if "hwf_layout" in info and info["hwf_layout"] not in HWF_LAYOUTS[1:]:
+        raise DataError(f"{f}: hwf_layout must be one of {HWF_LAYOUTS[1:]}, got {info['hwf_layout']!r}")
+    return info
+
+
+def _optional_files(folder: Path, n: int, what: str):
+    if not folder.is_dir():
+        return None
+    files = list_images(folder)
+    if not files:
+        return None
+    if len(files) != n:
+        raise DataError(f"{folder}: {len(files)} {what} files but {n} images (frame count mismatch)")
+    return files
+
+
+def _check_size(arr: np.ndarray, path: Path, width: int, height: int):
+    if arr.shape[:2] != (height, width):
+        raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} disagrees with the "
+                        f"{width}x{height} of the first image")
+
+
+def clip_depth(depth: np.ndarray, percentiles) -> np.ndarray:
+    """Clip valid (> 0) depth to the given percentiles of its valid values; 0 stays 0 (invalid)."""
+    if percentiles is None:
+        return depth
+    lo_p, hi_p = percentiles
+    valid = depth > 0
+    lo, hi = np.percentile(depth[valid], [lo_p, hi_p])
+    out = np.where(valid, np.clip(depth, lo, hi), 0.0)
+    return out.astype(np.float32)
+
+
+def _downscaled_size(width, height, downscale):
+    return int(round(width / downscale)), int(round(height / downscale))
+
+
+def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCENTILES,
+               hwf_layout: str = "auto", use_depth: bool = True, use_masks: bool = True,
+               test_every: int = TEST_EVERY) -> Scene:
+    """Load an EndoNeRF-layout scene.
+
+    path:              the scene folder (images/, poses_bounds.npy, optional depth/, masks/, scene.json).
+    downscale:         factor >= 1; images are area-averaged, depth is resampled nearest (so no
+                       invalid 0 is mixed in), a mask pixel stays tissue only if fully tissue;
+                       intrinsics are divided by the factor.
+    depth_percentiles: (lo, hi) percentiles each depth map's valid pixels are clipped to, or None.
+    hwf_layout:        "auto" (scene.json "hwf_layout" if present, else detected, see llff.py),
+                       "hwf" (EndoNeRF) or "cy_cx_f" (StereoMIS conversions).
+    use_depth/use_masks: ignore depth/ or masks/ even when present.
+    Raises DataError naming the file for missing poses, frame-count mismatches, unreadable or
+    truncated images, sizes that disagree, and depth maps with no valid pixel.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise DataError(f"{path}: scene folder not found")
+    if not downscale >= 1:
+        raise DataError(f"{path}: downscale must be >= 1, got {downscale}")
+    info = _read_scene_json(path)
+    poses = read_poses_bounds(path / "poses_bounds.npy")
+    img_dir = path / "images"
+    if not img_dir.is_dir():
+        raise DataError(f"{img_dir}: missing (the scene needs an images/ folder)")
+    images = list_images(img_dir)
+    if not images:
+        raise DataError(f"{img_dir}: no .png/.jpg images")
+    n = len(images)
+    if poses.shape[0] != n:
+        raise DataError(f"{path / 'poses_bounds.npy'}: {poses.shape[0]} poses but {n} images in "
+                        f"{img_dir} (frame count mismatch)")
+    depth_files = _optional_files(path / "depth", n, "depth") if use_depth else None
+    mask_files = _optional_files(path / "masks", n, "mask") if use_masks else None
+    depth_scale = info.get("depth_scale")
+
+    near = float(poses[:, 15].min())
+    far = float(poses[:, 16].max())
+    if not (far > near >= 0):
+        raise DataError(f"{path / 'poses_bounds.npy'}: bounds near={near:g}, far={far:g} are not "
+                        f"0 <= near < far")
+
+    layout = hwf_layout
+    if layout == "auto" and "hwf_layout" in info:
+        layout = info["hwf_layout"]
+
+    frames = []
+    width = height = None
+    resolved_layout = None
+    for i, img_path in enumerate(images):
+        image = read_rgb(img_path)
+        if width is None:
+            height, width = image.shape[:2]
+        _check_size(image, img_path, width, height)
+        depth = mask = None
+        if depth_files is not None:
+            depth = read_depth_raw(depth_files[i])
+            _check_size(depth, depth_files[i], width, height)
+            if not np.any(depth > 0):
+                raise DataError(f"{depth_files[i]}: depth map has no valid (non-zero) pixel")
+            if depth_scale is not None:
+                depth = depth * np.float32(depth_scale)
+            depth = clip_depth(depth, depth_percentiles)
+        if mask_files is not None:
+            mask = read_tissue_mask(mask_files[i])
+            _check_size(mask, mask_files[i], width, height)
+
+        src = f"{path / 'poses_bounds.npy'} (row {i})"
+        pose = poses[i, :15].reshape(3, 5)
+        fx, fy, cx, cy = intrinsics_from_hwf(pose[:, 4], width, height, layout, src)
+        if resolved_layout is None:
+            a, b = pose[0, 4], pose[1, 4]
+            resolved_layout = layout if layout != "auto" else (
+                "hwf" if (round(a), round(b)) == (height, width) else "cy_cx_f")
+        camera = Camera(fx, fy, cx, cy, width, height, llff_to_viewmat(pose[:, :4]))
+
+        if downscale != 1:
+            w2, h2 = _downscaled_size(width, height, downscale)
+            image = cv2.resize(image, (w2, h2), interpolation=cv2.INTER_AREA)
+            if depth is not None:
+                depth = cv2.resize(depth, (w2, h2), interpolation=cv2.INTER_NEAREST)
+            if mask is not None:
+                mask = (cv2.resize(mask, (w2, h2), interpolation=cv2.INTER_AREA) >= MASK_KEEP
+                        ).astype(np.float32)
+            camera = camera.scaled(downscale)
+        frames.append(Frame(index=i, time=i / (n - 1) if n > 1 else 0.0, image=image, depth=depth,
+                            mask=mask, camera=camera, name=img_path.stem))
+
+    train, test = split_indices(n, test_every)
+    return Scene(path=path, frames=frames, train_indices=train, test_indices=test, near=near,
+                 far=far, width=frames[0].camera.width, height=frames[0].camera.height,
+                 has_depth=depth_files is not None, has_masks=mask_files is not None,
+                 downscale=float(downscale), depth_scale=depth_scale, hwf_layout=resolved_layout,
+                 info=info)
