@@ -1,0 +1,82 @@
+"""Tile binning, tile ranges, and the bin -> sort -> ranges chain (cl/bin.cl).
+
+See docs/ARCHITECTURE.md "bin, sort, ranges".  The rasterizer consumes the output of
+:func:`bin_and_sort`: sorted_values [M] int32 (Gaussian ids, per tile front to back) and
+tile_ranges [n_tiles, 2] int32 (start, end) into it.
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import numpy as np
+import pyopencl.array as cla
+
+from endowave_cl.ops.scan import exclusive_scan_with_total
+from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
+from endowave_cl.runtime import round_up
+
+TILE = 16        # pixels per tile side (TILE in cl/common.h)
+DEPTH_BITS = 32  # low key bits: the float32 depth's bit pattern
+LOCAL = 64       # work-group size of the one-item-per-element kernels here
+
+
+def tile_grid(width: int, height: int) -> Tuple[int, int]:
+    """(tiles_x, tiles_y) covering a width x height image."""
+    return (int(width) + TILE - 1) // TILE, (int(height) + TILE - 1) // TILE
+
+
+def key_bits(n_tiles: int) -> int:
+    """Bits of a binning key that can be set: 32 depth bits + ceil(log2(n_tiles)) tile bits."""
+    return DEPTH_BITS + max(0, int(n_tiles) - 1).bit_length()
+
+
+def _launch(rt, name, n, *args):
+    k = rt.kernel("bin.cl", name)
+    k(rt.queue, (round_up(n, LOCAL),), (LOCAL,), *args)
+
+
+def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
+                  tiles_touched: cla.Array, tiles_x: int, tiles_y: int
+                  ) -> Tuple[cla.Array, cla.Array, int]:
+    """(keys [M] uint64, values [M] int32, M): for each Gaussian with radius > 0, one entry
+    per tile of its rect, row-major, at its offset in the exclusive scan of tiles_touched.
+
+    rect [N, 4] int32 (x0, y0, x1, y1) exclusive, clamped to the tiles_x x tiles_y grid;
+    depth [N] float32; radius [N] int32; tiles_touched [N] int32 (= the rect's area).
+    """
+    n = int(depth.size)
+    q = rt.queue
+    if n == 0:
+        return cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0
+    counts = cla.empty(q, n, np.int32)  # [N]
+    _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, np.int32(n), counts.data)
+    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
+    m = int(offsets[n:n + 1].get()[0])
+    keys = cla.empty(q, m, np.uint64)    # [M]
+    values = cla.empty(q, m, np.int32)   # [M]
+    if m > 0:
+        _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
+                np.int32(n), np.int32(tiles_x), keys.data, values.data)
+    return keys, values, m
+
+
+def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
+    """[n_tiles, 2] int32 (start, end) of each tile's run in sorted_keys [M]; (0, 0) if empty."""
+    q = rt.queue
+    ranges = cla.zeros(q, (int(n_tiles), 2), np.int32)
+    m = int(sorted_keys.size)
+    if m > 0 and n_tiles > 0:
+        _launch(rt, "tile_ranges", m, sorted_keys.data, np.int32(m), np.int32(n_tiles), ranges.data)
+    return ranges
+
+
+def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles_touched: cla.Array,
+                 width: int, height: int, sort_config: Optional[SortConfig] = None
+                 ) -> Tuple[cla.Array, cla.Array, int]:
+    """(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M) for a width x height image:
+    scan -> bin -> radix sort of the needed key bits -> ranges."""
+    tiles_x, tiles_y = tile_grid(width, height)
+    n_tiles = tiles_x * tiles_y
+    keys, values, m = bin_gaussians(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y)
+    sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, key_bits(n_tiles), sort_config)
+    return sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m

@@ -1,0 +1,165 @@
+"""Tile binning (cl/bin.cl), tile ranges and the bin -> sort -> ranges chain, exactly against
+the numpy reference (endowave_cl/reference/binning.py).  Integer ops: no adjoint."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from conftest import small
+from endowave_cl.ops import binning as B
+from endowave_cl.ops.sort import SortConfig
+from endowave_cl.reference.binning import (bin_gaussians_ref, sort_pairs_ref, tile_grid,
+                                           tile_ranges_ref)
+
+
+def _scene(rng, n, tiles_x, tiles_y, max_side=4, p_culled=0.2):
+    """Random projected Gaussians: rects clamped to the grid, tiles_touched = rect area,
+    some culled (radius 0, empty rect, no tiles), depths with duplicates."""
+    x0 = rng.integers(-2, tiles_x, n)
+    y0 = rng.integers(-2, tiles_y, n)
+    x1 = x0 + rng.integers(1, max_side + 1, n)
+    y1 = y0 + rng.integers(1, max_side + 1, n)
+    rect = np.stack([np.clip(x0, 0, tiles_x), np.clip(y0, 0, tiles_y),
+                     np.clip(x1, 0, tiles_x), np.clip(y1, 0, tiles_y)], 1).astype(np.int32)
+    radius = rng.integers(1, 40, n).astype(np.int32)
+    area = (rect[:, 2] - rect[:, 0]).clip(0) * (rect[:, 3] - rect[:, 1]).clip(0)
+    culled = (rng.random(n) < p_culled) | (area == 0)
+    radius[culled] = 0
+    tiles_touched = np.where(culled, 0, area).astype(np.int32)
+    depth = rng.choice(rng.uniform(0.05, 10.0, max(1, n // 3)), n).astype(np.float32)
+    return rect, depth, radius, tiles_touched
+
+
+def _dev(rt, *arrays):
+    return [cla.to_device(rt.queue, np.ascontiguousarray(a)) for a in arrays]
+
+
+def _check_binning(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y):
+    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tiles_touched), tiles_x, tiles_y)
+    ref_k, ref_v = bin_gaussians_ref(rect, depth, radius, tiles_x)
+    assert m == len(ref_k)
+    assert keys.dtype == np.uint64 and vals.dtype == np.int32 and keys.shape == (m,)
+    np.testing.assert_array_equal(keys.get(), ref_k)
+    np.testing.assert_array_equal(vals.get(), ref_v)
+    return ref_k
+
+
+def _check_chain(rt, rect, depth, radius, tiles_touched, width, height, config=None):
+    tiles_x, tiles_y = tile_grid(width, height)
+    n_tiles = tiles_x * tiles_y
+    sv, ranges, m = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tiles_touched), width, height,
+                                   sort_config=config)
+    ref_k, ref_v = sort_pairs_ref(*bin_gaussians_ref(rect, depth, radius, tiles_x))
+    assert m == len(ref_k) and sv.shape == (m,) and sv.dtype == np.int32
+    assert ranges.shape == (n_tiles, 2) and ranges.dtype == np.int32
+    np.testing.assert_array_equal(sv.get(), ref_v)
+    np.testing.assert_array_equal(ranges.get(), tile_ranges_ref(ref_k, n_tiles))
+
+
+# --- binning ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("tiles_x,tiles_y", [(1, 1), (7, 5), (40, 32), (13, 29)])
+@pytest.mark.parametrize("n", [1, 63, 64, 65, 1000])
+def test_bin_gaussians_matches_reference(rt, n, tiles_x, tiles_y):
+    rng = np.random.default_rng(n * 100 + tiles_x)
+    _check_binning(rt, *_scene(rng, n, tiles_x, tiles_y), tiles_x, tiles_y)
+
+
+def test_bin_empty_input(rt):
+    z = np.zeros(0, np.int32)
+    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 4, 3)
+    assert m == 0 and keys.shape == (0,) and vals.shape == (0,)
+
+
+def test_bin_all_culled(rt):
+    rng = np.random.default_rng(2)
+    rect, depth, radius, tt = _scene(rng, 50, 9, 6)
+    radius[:] = 0
+    tt[:] = 0
+    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tt), 9, 6)
+    assert m == 0 and keys.size == 0
+
+
+def test_bin_radius_zero_ignores_stale_tiles_touched(rt):
+    """A culled Gaussian (radius 0) adds nothing, whatever its rect and tiles_touched say."""
+    rng = np.random.default_rng(4)
+    rect, depth, radius, tt = _scene(rng, 200, 11, 7, p_culled=0.0)
+    radius[::3] = 0  # tiles_touched and rect still non-empty for these
+    _check_binning(rt, rect, depth, radius, tt, 11, 7)
+
+
+def test_bin_one_gaussian_covers_all_tiles(rt):
+    tiles_x, tiles_y = 23, 9
+    rect = np.array([[0, 0, tiles_x, tiles_y], [3, 2, 5, 4]], np.int32)
+    depth = np.array([2.5, 1.0], np.float32)
+    radius = np.array([5000, 10], np.int32)
+    tt = np.array([tiles_x * tiles_y, 4], np.int32)
+    keys = _check_binning(rt, rect, depth, radius, tt, tiles_x, tiles_y)
+    assert len(keys) == tiles_x * tiles_y + 4
+
+
+# --- ranges -------------------------------------------------------------------------------------
+
+def test_tile_ranges_matches_reference(rt):
+    rng = np.random.default_rng(8)
+    n_tiles = 37
+    tiles = np.sort(rng.choice([0, 3, 4, 5, 17, 36], 500)).astype(np.uint64)
+    keys = (tiles << np.uint64(32)) | rng.integers(0, 2 ** 32, 500, dtype=np.uint64)
+    r = B.tile_ranges(rt, cla.to_device(rt.queue, keys), n_tiles)
+    np.testing.assert_array_equal(r.get(), tile_ranges_ref(keys, n_tiles))
+
+
+def test_tile_ranges_single_entry_and_empty(rt):
+    keys = np.array([np.uint64(6) << np.uint64(32)], np.uint64)
+    r = B.tile_ranges(rt, cla.to_device(rt.queue, keys), 10).get()
+    np.testing.assert_array_equal(r, tile_ranges_ref(keys, 10))
+    assert tuple(r[6]) == (0, 1)
+    r0 = B.tile_ranges(rt, cla.empty(rt.queue, 0, np.uint64), 10).get()
+    np.testing.assert_array_equal(r0, np.zeros((10, 2), np.int32))
+
+
+# --- the chain ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("width,height", [(16, 16), (100, 37), (640, 512), (333, 211)])
+def test_bin_and_sort_matches_reference(rt, width, height):
+    tiles_x, tiles_y = tile_grid(width, height)
+    rng = np.random.default_rng(width)
+    _check_chain(rt, *_scene(rng, 3000, tiles_x, tiles_y, max_side=5), width, height)
+
+
+@pytest.mark.parametrize("cfg", [SortConfig(radix_bits=4, wg=8, items_min=3, items_max=3),
+                                 SortConfig(radix_bits=8, wg=4, items_min=7, items_max=7)])
+def test_bin_and_sort_other_sort_configs(rt, cfg):
+    rng = np.random.default_rng(12)
+    _check_chain(rt, *_scene(rng, 700, 12, 10), 190, 150, config=cfg)
+
+
+def test_bin_and_sort_empty(rt):
+    z = np.zeros(0, np.int32)
+    sv, ranges, m = B.bin_and_sort(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 50, 40)
+    assert m == 0 and sv.shape == (0,)
+    np.testing.assert_array_equal(ranges.get(), np.zeros((4 * 3, 2), np.int32))
+
+
+def test_bin_and_sort_100k_gaussians(rt):
+    """The benchmark's scene size: 100k Gaussians of 1-3 tiles per side on a 40 x 32 grid."""
+    rng = np.random.default_rng(100)
+    _check_chain(rt, *_scene(rng, 100_000, 40, 32, max_side=3, p_culled=0.1), 640, 512)
+
+
+def test_key_bits():
+    assert B.key_bits(1) == 32 and B.key_bits(2) == 33 and B.key_bits(1280) == 43
+    assert B.key_bits(1024) == 42 and B.key_bits(1025) == 43
+    assert B.tile_grid(640, 512) == (40, 32) and B.tile_grid(641, 1) == (41, 1)
+
+
+@pytest.mark.oclgrind
+def test_bin_and_sort_tiny(rt):
+    rng = np.random.default_rng(20)
+    n = small(20, 20)
+    rect, depth, radius, tt = _scene(rng, n, 5, 3, max_side=3)
+    rect[0] = (0, 0, 5, 3)  # one Gaussian covers every tile
+    radius[0], tt[0] = 99, 15
+    _check_binning(rt, rect, depth, radius, tt, 5, 3)
+    _check_chain(rt, rect, depth, radius, tt, 80, 40)
