@@ -1,0 +1,1 @@
+"""Host-side building blocks of training: config, losses, densification, checkpoints, init."""

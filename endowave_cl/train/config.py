@@ -1,0 +1,147 @@
+"""Every training default in one dataclass, and loading it from a TOML file.
+
+Defaults follow DESIGN.md (3DGS / 4DGS optimiser and density-control values); the ones the paper
+leaves open are chosen here and commented.  A TOML file holds flat ``key = value`` pairs with the
+field names below (an optional ``[train]`` table is accepted too).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Dict, Mapping, Optional
+
+from ..errors import EndowaveError
+
+
+@dataclass
+class TrainConfig:
+    # -- schedule -------------------------------------------------------------------------------
+    iterations: int = 3000          # demo default: a few minutes per 1000 steps on a GPU, usable
+                                    # on a CPU; 4DGS trains 30000 (pass iterations = 30000)
+    seed: int = 0
+    log_every: int = 50
+    eval_every: int = 500
+    checkpoint_every: int = 1000
+    # -- data -----------------------------------------------------------------------------------
+    downscale: float = 1.0          # image downscale factor (2 = half size)
+    init_points: int = 30000        # Gaussians created by init_gaussians
+    max_gaussians: int = 300000     # densification stops adding Gaussians beyond this count
+    sh_degree: int = 3
+    temporal_freqs: int = 2
+    # -- learning rates (Adam, eps 1e-15; see ops/adam.py) ----------------------------------------
+    lr_position_init: float = 1.6e-4   # x scene extent, decays log-linearly ...
+    lr_position_final: float = 1.6e-6  # ... to this (x extent) at lr_position_steps
+    lr_position_steps: int = 0          # 0: decay over `iterations`
+    lr_time: float = 1.6e-4             # t column of the means: the initial position lr, not
+                                        # decayed and NOT times the extent (time is normalised to
+                                        # [0, 1] whatever the scene's size)
+    lr_features: float = 2.5e-3         # TEASH DC term sh[:, 0, 0, :]
+    lr_features_rest_divisor: float = 20.0  # every other TEASH coefficient: lr_features / 20
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_rotation: float = 1e-3           # both quaternions q_l, q_r
+    lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
+                                        # since the phase is part of the appearance model
+    # -- adaptive density control (3DGS) ------------------------------------------------------------
+    densify_from: int = 500
+    densify_every: int = 100
+    densify_until: int = 2000           # 3DGS stops at half of training (15000 of 30000); the demo
+                                        # keeps the last third free of densification
+    densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
+    percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
+    split_children: int = 2
+    split_scale_divisor: float = 1.6    # children's spatial scales = parent's / 1.6
+    prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
+    prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
+    prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
+    opacity_reset_every: int = 3000
+    opacity_reset_value: float = 0.01
+    # -- losses -----------------------------------------------------------------------------------
+    lambda_rgb: float = 1.0
+    lambda_dssim: float = 0.2           # L_rgb = (1 - 0.2) L1 + 0.2 D-SSIM
+    lambda_depth: float = 1.0
+    lambda_flow: float = 0.01           # not in the paper: flow loss is a mean squared endpoint
+                                        # error in pixels (see train/losses.py); 1 px of error
+                                        # costs 0.01, below a typical late L1 of ~0.02-0.05
+    lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
+                                        # error per sub-band coefficient (MSE scale), weight 1
+    use_depth: bool = True
+    use_flow: bool = True
+    use_wavelet: bool = True
+
+    def to_dict(self) -> Dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], source: str = "config dictionary") -> "TrainConfig":
+        cfg = cls()
+        apply_values(cfg, d, source)
+        return cfg
+
+
+_FIELDS = {f.name: f for f in fields(TrainConfig)}
+
+
+def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
+    kind = type(getattr(TrainConfig(), name))  # the default's type: int, float or bool
+    if from_text and isinstance(value, str):
+        text = value.strip()
+        try:
+            if kind is bool:
+                if text.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if text.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError(text)
+            return kind(float(text)) if kind is int and float(text).is_integer() else kind(text)
+        except ValueError:
+            raise EndowaveError(f"{source}: key '{name}' expects {kind.__name__}, got {value!r}") from None
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:  # float accepts an int
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok:
+        raise EndowaveError(f"{source}: key '{name}' expects {kind.__name__}, "
+                            f"got {type(value).__name__} {value!r}")
+    return kind(value)
+
+
+def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_text: bool = False) -> None:
+    for key, value in values.items():
+        if key not in _FIELDS:
+            raise EndowaveError(f"{source}: unknown key '{key}'")
+        setattr(cfg, key, _coerce(key, value, source, from_text))
+    for name in ("iterations", "densify_every", "split_children"):
+        if getattr(cfg, name) < 1:
+            raise EndowaveError(f"{source}: key '{name}' must be at least 1, got {getattr(cfg, name)}")
+
+
+def _toml_module():
+    if sys.version_info >= (3, 11):
+        import tomllib
+        return tomllib
+    import tomli  # setup.cfg requires it below 3.11
+    return tomli
+
+
+def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = None) -> TrainConfig:
+    """Defaults, then the TOML file at ``path`` (if any), then ``overrides`` (values or strings)."""
+    cfg = TrainConfig()
+    if path is not None:
+        toml = _toml_module()
+        try:
+            with open(path, "rb") as f:
+                data = toml.load(f)
+        except FileNotFoundError:
+            raise EndowaveError(f"{path}: config file does not exist") from None
+        except toml.TOMLDecodeError as e:
+            raise EndowaveError(f"{path}: not valid TOML: {e}") from None
+        if "train" in data and isinstance(data["train"], dict):
+            rest = {k: v for k, v in data.items() if k != "train"}
+            data = {**data["train"], **rest}
+        apply_values(cfg, data, str(path))
+    if overrides:
+        apply_values(cfg, overrides, "override", from_text=True)
+    return cfg
