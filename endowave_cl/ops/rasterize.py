@@ -1,0 +1,130 @@
+"""Host ops of the tile rasterizer: forward, adjoint and densification statistics.
+
+Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl.  References (same names):
+endowave_cl/reference/rasterize.py, whose constants (ALPHA_MAX, ALPHA_MIN, T_STOP) are passed to the
+kernels as build options so both sides use the same values.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict
+
+import numpy as np
+
+from ..reference.rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP
+from ..runtime import round_up
+
+TILE = 16
+
+
+def _f32_literal(x: float) -> str:
+    """An OpenCL float literal that rounds to the same float32 as numpy does."""
+    return "%.9ef" % float(np.float32(x))
+
+
+def _options(C: int):
+    return [f"-DC={int(C)}", f"-DALPHA_MAX={_f32_literal(ALPHA_MAX)}",
+            f"-DALPHA_MIN={_f32_literal(ALPHA_MIN)}", f"-DT_STOP={_f32_literal(T_STOP)}"]
+
+
+@dataclass
+class RasterOut:
+    out: "object"      # [H, W, C] float32
+    alpha: "object"    # [H, W] float32, 1 - T_final
+    T_final: "object"  # [H, W] float32
+    last: "object"     # [H, W] int32, one past the last contributor (relative to the tile's start)
+
+
+def _buf(rt, arr):
+    """arr's buffer, or a 4-byte dummy for empty arrays (pyopencl gives them no buffer)."""
+    if arr is not None and arr.size > 0:
+        return arr.data
+    d = getattr(rt, "_rasterize_dummy", None)
+    if d is None:
+        d = rt.cl.Buffer(rt.ctx, rt.cl.mem_flags.READ_WRITE, 4)
+        rt._rasterize_dummy = d
+    return d
+
+
+def _grid(width: int, height: int):
+    tiles_x = (width + TILE - 1) // TILE
+    tiles_y = (height + TILE - 1) // TILE
+    return tiles_x, tiles_y, (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
+
+
+def _check(means2d, conic, opac, features, tile_ranges, width, height):
+    N = features.shape[0]
+    assert means2d.shape == (N, 2) and conic.shape == (N, 3) and opac.shape == (N,), \
+        (means2d.shape, conic.shape, opac.shape, features.shape)
+    tx, ty, _, _ = _grid(width, height)
+    assert tile_ranges.shape == (tx * ty, 2), (tile_ranges.shape, tx * ty)
+    for a in (means2d, conic, opac, features):
+        assert a.dtype == np.float32 and a.flags.c_contiguous
+    assert tile_ranges.dtype == np.int32
+
+
+def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
+              height: int) -> RasterOut:
+    """Composite the sorted Gaussians front to back over a width x height image.
+
+    means2d [N,2], conic [N,3], opac [N], features [N,C] float32; sorted_values [M] int32 (Gaussian
+    ids, tile-major then depth); tile_ranges [n_tiles, 2] int32.  All pyopencl arrays.
+    """
+    import pyopencl.array as cla
+    width, height = int(width), int(height)
+    _check(means2d, conic, opac, features, tile_ranges, width, height)
+    C = int(features.shape[1])
+    q = rt.queue
+    res = RasterOut(cla.empty(q, (height, width, C), np.float32), cla.empty(q, (height, width), np.float32),
+                    cla.empty(q, (height, width), np.float32), cla.empty(q, (height, width), np.int32))
+    if width == 0 or height == 0:
+        return res
+    tiles_x, _, gsize, lsize = _grid(width, height)
+    k = rt.kernel("rasterize.cl", "rasterize", _options(C))
+    k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
+      _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+      res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+    return res
+
+
+def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
+                  height: int, raster_out: RasterOut, v_out, v_alpha) -> Dict[str, "object"]:
+    """Adjoint of ``rasterize``: from v_out [H,W,C] and v_alpha [H,W] to
+    dict(v_means2d [N,2], v_conic [N,3], v_opac [N], v_features [N,C]) (new pyopencl arrays)."""
+    import pyopencl.array as cla
+    width, height = int(width), int(height)
+    _check(means2d, conic, opac, features, tile_ranges, width, height)
+    N, C = (int(s) for s in features.shape)
+    assert v_out.shape == (height, width, C) and v_alpha.shape == (height, width)
+    q = rt.queue
+    grads = {"v_means2d": cla.zeros(q, (N, 2), np.float32), "v_conic": cla.zeros(q, (N, 3), np.float32),
+             "v_opac": cla.zeros(q, (N,), np.float32), "v_features": cla.zeros(q, (N, C), np.float32)}
+    if N == 0 or width == 0 or height == 0:
+        return grads
+    tiles_x, _, gsize, lsize = _grid(width, height)
+    k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", _options(C))
+    k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
+      tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+      raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+      grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
+    return grads
+
+
+# The name the architecture uses for the adjoint.
+v_rasterize = rasterize_bwd
+
+
+def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
+                             max_radius) -> None:
+    """In place on the device, for Gaussians with radius > 0: grad_accum [N] += |v_means2d * (W/2, H/2)|,
+    count [N] (int32) += 1, max_radius [N] = max(max_radius, radius)."""
+    N = int(radius.shape[0])
+    assert v_means2d.shape == (N, 2) and grad_accum.shape == (N,) and count.shape == (N,) \
+        and max_radius.shape == (N,)
+    assert radius.dtype == np.int32 and count.dtype == np.int32
+    if N == 0:
+        return
+    k = rt.kernel("densify_stats.cl", "accumulate_densify_stats")
+    wg = 64
+    k(rt.queue, (round_up(N, wg),), (wg,), v_means2d.data, radius.data, np.float32(0.5 * width),
+      np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)
