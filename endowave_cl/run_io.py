@@ -1,0 +1,63 @@
+"""Open a training run folder: its config, its newest checkpoint and its scene."""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import EndowaveError
+
+
+@dataclass
+class LoadedRun:
+    path: Path
+    cfg: object          # TrainConfig
+    scene: object        # data.scene.Scene
+    gaussians: object    # Gaussians
+    step: int
+    checkpoint: Path
+
+
+def load_run(run_dir, scene_override=None) -> LoadedRun:
+    from .data.scene import load_scene
+    from .train.checkpoint import latest_checkpoint, load_checkpoint
+    from .train.config import TrainConfig
+    run = Path(run_dir)
+    cfg_file = run / "config.json"
+    if not cfg_file.is_file():
+        raise EndowaveError(f"{run}: not a training run (no config.json); train one with endowave-cl train")
+    try:
+        d = json.loads(cfg_file.read_text())
+    except json.JSONDecodeError as e:
+        raise EndowaveError(f"{cfg_file}: not valid JSON: {e}") from None
+    scene_path = scene_override or d.pop("scene", None)
+    d.pop("scene", None)
+    cfg = TrainConfig.from_dict(d, str(cfg_file))
+    ck = latest_checkpoint(run)
+    if ck is None:
+        raise EndowaveError(f"{run}: no checkpoint_*.npz yet")
+    state = load_checkpoint(ck)
+    scene = load_scene(scene_path, downscale=cfg.downscale)
+    return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
+
+
+def write_png_atomic(path, image: np.ndarray) -> None:
+    """image: [H, W, 3] float in [0, 1] (RGB) or [H, W] uint16/uint8."""
+    import cv2
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if image.dtype in (np.uint8, np.uint16):
+        arr = image
+    else:
+        arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if arr.ndim == 3:
+        arr = arr[..., ::-1]  # RGB -> BGR for OpenCV
+    ok, buf = cv2.imencode(".png", arr)
+    if not ok:
+        raise EndowaveError(f"{path}: could not encode PNG")
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_bytes(buf.tobytes())
+    os.replace(tmp, path)
