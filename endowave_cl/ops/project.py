@@ -1,0 +1,133 @@
+"""project4d host op: 4D Gaussians -> 2D splats at time t, and its adjoint (docs/ARCHITECTURE.md).
+
+Kernels: cl/project4d.cl (forward), cl/project4d_bwd.cl (adjoint), shared math in
+cl/project4d_common.h.  Reference: endowave_cl/reference/project.py.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Optional
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
+from ..runtime import round_up
+
+TILE = 16
+WORK_GROUP = 64        # work-items per group; one work-item per Gaussian
+CAM_SIZE = 20          # floats in the camera buffer (layout: CAM_* in cl/project4d_common.h)
+
+
+@dataclass
+class Projected:
+    means2d: cla.Array        # [N, 2] float32
+    conic: cla.Array          # [N, 3] float32 (inv00, inv01, inv11)
+    depth: cla.Array          # [N] float32, camera-space z
+    radius: cla.Array         # [N] int32, 0 = culled
+    opac: cla.Array           # [N] float32, sigmoid(opacity) * marginal
+    features: cla.Array       # [N, C] float32 [r, g, b, depth, flow_x, flow_y]
+    rect: cla.Array           # [N, 4] int32 (x0, y0, x1, y1) exclusive, in tiles
+    tiles_touched: cla.Array  # [N] int32
+
+    def __len__(self) -> int:
+        return int(self.radius.shape[0])
+
+
+def _dims(params):
+    sh = params["sh"]
+    n = int(params["means"].shape[0])
+    nt = int(sh.shape[1]) - 1
+    K = int(sh.shape[2])
+    degree = int(round(np.sqrt(K))) - 1
+    if (degree + 1) ** 2 != K or not 0 <= degree <= 3:
+        raise ValueError(f"sh has {K} bases per frequency; expected (L+1)^2 with L in 0..3")
+    return n, nt, K, degree
+
+
+def _options(degree: int, nt: int, channels: int):
+    # correctly rounded / and sqrt make the float radius and rect match the torch reference
+    return [f"-DSH_DEGREE={degree}", f"-DNT={nt}", f"-DCHANNELS={channels}",
+            f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f",
+            "-cl-fp32-correctly-rounded-divide-sqrt"]
+
+
+def camera_buffer(rt, camera) -> cla.Array:
+    """The camera as the kernels read it: rotation (9), translation (3), fx, fy, cx, cy, near, campos (3)."""
+    V = np.asarray(camera.viewmat, np.float32)
+    buf = np.concatenate([V[:3, :3].reshape(-1), V[:3, 3],
+                          np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.near], np.float32),
+                          camera.campos.astype(np.float32)]).astype(np.float32)
+    assert buf.size == CAM_SIZE
+    return cla.to_device(rt.queue, buf)
+
+
+def _tiles(camera):
+    return (camera.width + TILE - 1) // TILE, (camera.height + TILE - 1) // TILE
+
+
+def _check_params(params, n):
+    for name in ("means", "scales", "quat_l", "quat_r", "opacity", "sh", "phase"):
+        a = params[name]
+        if a.dtype != np.float32 or not a.flags.c_contiguous or int(a.shape[0]) != n:
+            raise ValueError(f"params[{name!r}] must be C-contiguous float32 with {n} rows")
+
+
+def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Optional[float] = None,
+              channels: int = 6) -> Projected:
+    """Project every Gaussian at time t (flow to t_flow when given); see docs/ARCHITECTURE.md."""
+    n, nt, K, degree = _dims(params)
+    q = rt.queue
+    out = Projected(
+        means2d=cla.empty(q, (n, 2), np.float32), conic=cla.empty(q, (n, 3), np.float32),
+        depth=cla.empty(q, (n,), np.float32), radius=cla.empty(q, (n,), np.int32),
+        opac=cla.empty(q, (n,), np.float32), features=cla.empty(q, (n, channels), np.float32),
+        rect=cla.empty(q, (n, 4), np.int32), tiles_touched=cla.empty(q, (n,), np.int32))
+    if n == 0:
+        return out
+    _check_params(params, n)
+    tiles_x, tiles_y = _tiles(camera)
+    cam = camera_buffer(rt, camera)
+    k = rt.kernel("project4d.cl", "project4d", _options(degree, nt, channels))
+    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
+      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+      out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
+      out.features.data, out.rect.data, out.tiles_touched.data)
+    return out
+
+
+def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Optional[float],
+                  proj: Projected, v_means2d: cla.Array, v_conic: cla.Array, v_opac: cla.Array,
+                  v_features: cla.Array) -> Dict[str, cla.Array]:
+    """Adjoint of project4d: gradients of every parameter (zero for culled Gaussians).
+
+    v_means2d [N, 2], v_conic [N, 3], v_opac [N], v_features [N, C] ->
+    v_means [N, 4], v_scales [N, 4], v_quat_l [N, 4], v_quat_r [N, 4], v_opacity [N],
+    v_sh [N, NT+1, K, 3], v_phase [N, NT+1].  The SH view direction is not differentiated.
+    """
+    n, nt, K, degree = _dims(params)
+    q = rt.queue
+    grads = {
+        "v_means": cla.empty(q, (n, 4), np.float32), "v_scales": cla.empty(q, (n, 4), np.float32),
+        "v_quat_l": cla.empty(q, (n, 4), np.float32), "v_quat_r": cla.empty(q, (n, 4), np.float32),
+        "v_opacity": cla.empty(q, (n,), np.float32), "v_sh": cla.empty(q, (n, nt + 1, K, 3), np.float32),
+        "v_phase": cla.empty(q, (n, nt + 1), np.float32)}
+    if n == 0:
+        return grads
+    _check_params(params, n)
+    channels = int(v_features.shape[1])
+    tiles_x, tiles_y = _tiles(camera)
+    cam = camera_buffer(rt, camera)
+    k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(degree, nt, channels))
+    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
+      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+      proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
+      grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
+      grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
+    return grads

@@ -1,0 +1,247 @@
+"""project4d: OpenCL kernel vs torch reference (forward and adjoint), and the 4D geometry itself."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import oclgrind_active, small
+from endowave_cl.camera import Camera
+from endowave_cl.gaussians import MARGINAL_CULL, Gaussians, upload
+from endowave_cl.ops.project import project4d, project4d_bwd
+from endowave_cl.reference.project import (condition_at, covariance4d, project4d_ref, rotation4d,
+                                           sh_basis)
+
+FLOAT_OUTS = ("means2d", "conic", "depth", "opac", "features")
+INT_OUTS = ("radius", "rect", "tiles_touched")
+
+
+def look_camera(seed: int, width=200, height=150) -> Camera:
+    """A camera at a random position near the origin looking at (0, 0, 3), where the scenes are."""
+    rng = np.random.default_rng(seed)
+    eye = np.array([0.0, 0.0, 0.0]) + 0.3 * rng.uniform(-1, 1, 3)
+    fwd = np.array([0.0, 0.0, 3.0]) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(np.array([0.0, 1.0, 0.0]) + 0.1 * rng.uniform(-1, 1, 3), fwd)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])          # world -> camera rows (x right, y down, z forward)
+    V = np.eye(4)
+    V[:3, :3] = R
+    V[:3, 3] = -R @ eye
+    return Camera(1.1 * width, 1.1 * width, width / 2 + 3.3, height / 2 - 2.1, width, height, V)
+
+
+def torch_params(g: Gaussians, dtype=torch.float32):
+    return {k: torch.from_numpy(v.copy()).to(dtype) for k, v in g.as_dict().items()}
+
+
+def run_both(rt, g, cam, t, t_flow, channels=6):
+    p = project4d(rt, upload(rt, g), cam, t, t_flow, channels)
+    r = project4d_ref(torch_params(g), cam, t, t_flow, channels)
+    return {f: getattr(p, f).get() for f in FLOAT_OUTS + INT_OUTS}, {f: r[f].numpy() for f in r}
+
+
+def assert_close(a, b, rtol, atol, what):
+    """|a - b| <= atol + rtol |b| elementwise; atol may be an array broadcast against b."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    assert a.shape == b.shape, (what, a.shape, b.shape)
+    err = np.abs(a - b) - (atol + rtol * np.abs(b))
+    if err.size and not (err <= 0).all():
+        i = np.unravel_index(np.argmax(err), err.shape)
+        raise AssertionError(f"{what}: {int((err > 0).sum())} of {err.size} differ; worst at {i}: "
+                             f"{a[i]!r} vs {b[i]!r}")
+
+
+def assert_forward_close(k, r):
+    for f in INT_OUTS:
+        np.testing.assert_array_equal(k[f], r[f], err_msg=f)
+    for f in ("means2d", "conic", "depth", "opac"):
+        b = r[f].astype(np.float64)
+        # atol: 1e-4 of the largest magnitude of the column (conic b can be ~0 next to large a, c)
+        scale = np.abs(b).reshape(len(b), -1).max(0) if len(b) else 0.0
+        assert_close(k[f].reshape(len(b), -1), b.reshape(len(b), -1), 1e-4,
+                     1e-4 * np.maximum(scale, 1e-3), f)
+    fk, fr = k["features"].astype(np.float64), r["features"].astype(np.float64)
+    C = fr.shape[1]
+    np.testing.assert_allclose(fk[:, :3], fr[:, :3], rtol=1e-4, atol=1e-4, err_msg="colour")
+    if C > 3:
+        np.testing.assert_allclose(fk[:, 3], fr[:, 3], rtol=1e-4, atol=1e-6, err_msg="depth channel")
+    if C > 5:
+        # flow = difference of two projections: its float32 error follows the projected coordinates
+        atol = 1e-4 * (1.0 + np.abs(r["means2d"]) + np.abs(fr[:, 4:6]))
+        assert_close(fk[:, 4:6], fr[:, 4:6], 1e-4, atol, "flow")
+    for f in FLOAT_OUTS:
+        assert np.isfinite(k[f]).all(), f
+
+
+# ---------------------------------------------------------------------------------------------
+# forward: kernel vs reference
+
+@pytest.mark.parametrize("n,seed,t,t_flow", [(1, 0, 0.5, None), (37, 1, 0.3, 0.35), (500, 2, 0.7, 0.6),
+                                             (1000, 3, 0.0, 1.0)])
+def test_forward_matches_reference(rt, n, seed, t, t_flow):
+    g = Gaussians.random(small(n, 7), seed=seed)
+    g.means[:2, 3] = t              # the first two at their temporal peak, so N = 1 is visible too
+    cam = look_camera(seed)
+    k, r = run_both(rt, g, cam, t, t_flow)
+    assert (r["radius"] > 0).sum() > 0.3 * len(g)   # the scene is mostly visible: a real comparison
+    assert_forward_close(k, r)
+    if t_flow is None:
+        assert (k["features"][:, 4:] == 0).all()
+
+
+@pytest.mark.parametrize("degree,nt,channels", [(0, 0, 3), (1, 1, 4), (2, 3, 6), (3, 2, 8)])
+def test_forward_other_sizes(rt, degree, nt, channels):
+    g = Gaussians.random(small(70, 5), seed=11, degree=degree, nt=nt)
+    k, r = run_both(rt, g, look_camera(3), 0.45, 0.5, channels)
+    assert k["features"].shape == (len(g), channels)
+    assert_forward_close(k, r)
+
+
+@pytest.mark.oclgrind
+def test_forward_tiny_oclgrind(rt):
+    g = Gaussians.random(7, seed=4)
+    g.means[0, 2] = -1.0            # one behind the camera
+    k, r = run_both(rt, g, look_camera(4, 40, 24), 0.5, 0.55)
+    assert_forward_close(k, r)
+
+
+def test_empty_scene(rt):
+    g = Gaussians.empty()
+    p = project4d(rt, upload(rt, g), look_camera(0), 0.5, 0.6)
+    assert p.means2d.shape == (0, 2) and p.features.shape == (0, 6) and p.rect.shape == (0, 4)
+    r = project4d_ref(torch_params(g), look_camera(0), 0.5, 0.6)
+    assert r["means2d"].shape == (0, 2) and r["radius"].shape == (0,)
+
+
+# ---------------------------------------------------------------------------------------------
+# the 4D geometry
+
+def hamilton(p, q):
+    """Quaternion product p * q, (w, x, y, z), numpy."""
+    a1, b1, c1, d1 = p
+    a2, b2, c2, d2 = q
+    return np.array([a1 * a2 - b1 * b2 - c1 * c2 - d1 * d2, a1 * b2 + b1 * a2 + c1 * d2 - d1 * c2,
+                     a1 * c2 - b1 * d2 + c1 * a2 + d1 * b2, a1 * d2 + b1 * c2 - c1 * b2 + d1 * a2])
+
+
+def test_rotation4d_is_a_rotation_and_equals_quaternion_sandwich():
+    rng = np.random.default_rng(0)
+    ql, qr = rng.standard_normal((20, 4)), rng.standard_normal((20, 4))
+    R = rotation4d(torch.from_numpy(ql), torch.from_numpy(qr)).numpy()
+    for i in range(20):
+        np.testing.assert_allclose(R[i] @ R[i].T, np.eye(4), atol=1e-12)
+        assert abs(np.linalg.det(R[i]) - 1.0) < 1e-12
+        ul, ur = ql[i] / np.linalg.norm(ql[i]), qr[i] / np.linalg.norm(qr[i])
+        # independent construction: column j is q_l * e_j * q_r
+        cols = [hamilton(hamilton(ul, e), ur) for e in np.eye(4)]
+        np.testing.assert_allclose(R[i], np.stack(cols, 1), atol=1e-12)
+
+
+def test_rotation4d_known_xt_plane_rotation():
+    # q_l = q_r = (cos(theta/2), 0, 0, sin(theta/2)) = exp(k theta/2) on both sides: the (1, k) plane,
+    # i.e. the (x, t) plane, turns by theta/2 twice, while the (i, j) = (y, z) plane turns by
+    # +theta/2 and then -theta/2 (k i = j but i k = -j), so it stays fixed.
+    theta = 0.7
+    q = torch.tensor([[math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2)]], dtype=torch.float64)
+    R = rotation4d(q, 3.0 * q)[0].numpy()   # unnormalised input on purpose
+    c, s = math.cos(theta), math.sin(theta)
+    expected = np.array([[c, 0, 0, -s], [0, 1, 0, 0], [0, 0, 1, 0], [s, 0, 0, c]])
+    np.testing.assert_allclose(R, expected, atol=1e-12)
+
+
+def xt_gaussian(theta, sx, st, mean):
+    """Gaussians with one Gaussian rotated by theta in the (x, t) plane (see the test above)."""
+    g = Gaussians.random(1, seed=0)
+    q = np.array([math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2)])
+    g.quat_l[0] = q
+    g.quat_r[0] = q
+    g.scales[0] = np.log([sx, 0.05, 0.05, st])
+    g.means[0] = mean
+    g.opacity[0] = 2.0
+    return g
+
+
+def test_known_velocity_position_and_flow(rt):
+    theta, sx, st = 0.6, 0.05, 0.4
+    c, s = math.cos(theta), math.sin(theta)
+    # Sigma = R diag(sx^2, ., ., st^2) R^T in the (x, t) plane, R = [[c, -s], [s, c]]:
+    sxt = c * s * (sx ** 2 - st ** 2)
+    stt = s * s * sx ** 2 + c * c * st ** 2
+    v = sxt / stt                                        # world units per unit time along x
+    mean = np.array([0.1, -0.05, 3.0, 0.5])
+    g = xt_gaussian(theta, sx, st, mean)
+    cam = Camera(150.0, 160.0, 80.0, 60.0, 160, 120)     # identity pose
+    t1, t2 = 0.45, 0.6
+    p = project4d(rt, upload(rt, g), cam, t1, t2)
+    p2 = project4d(rt, upload(rt, g), cam, t2, None)
+    for proj, tt in ((p, t1), (p2, t2)):
+        x = mean[0] + v * (tt - mean[3])
+        pred = np.array([cam.fx * x / mean[2] + cam.cx, cam.fy * mean[1] / mean[2] + cam.cy])
+        np.testing.assert_allclose(proj.means2d.get()[0], pred, rtol=1e-5)
+        m = math.exp(-0.5 * (tt - mean[3]) ** 2 / stt)
+        np.testing.assert_allclose(proj.opac.get()[0], m / (1 + math.exp(-2.0)), rtol=1e-5)
+    flow = p.features.get()[0, 4:6]
+    np.testing.assert_allclose(flow, p2.means2d.get()[0] - p.means2d.get()[0], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(flow, [cam.fx * v * (t2 - t1) / mean[2], 0.0], rtol=1e-4, atol=1e-4)
+    assert abs(flow[0]) > 1.0                            # it really moves
+
+
+def test_conditional_finite_differences():
+    torch.manual_seed(0)
+    g = Gaussians.random(5, seed=3)
+    P = torch_params(g, torch.float64)
+    P["means"].requires_grad_(True)
+    for name in ("scales", "quat_l", "quat_r"):
+        P[name].requires_grad_(True)
+
+    def f(means, scales, ql, qr):
+        mu, cov, m = condition_at(means, covariance4d(scales, ql, qr), 0.4)
+        return mu, cov, m
+
+    assert torch.autograd.gradcheck(f, (P["means"], P["scales"], P["quat_l"], P["quat_r"]),
+                                    eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_sh_basis_orthonormal():
+    # Monte-Carlo over the sphere: E[Y_a Y_b] = delta_ab / (4 pi) for the real orthonormal basis
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((400000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    Y = sh_basis(torch.from_numpy(d), 3).numpy()
+    gram = 4 * np.pi * Y.T @ Y / len(d)
+    np.testing.assert_allclose(gram, np.eye(16), atol=0.02)
+
+
+# ---------------------------------------------------------------------------------------------
+# culling
+
+def test_culling_rules(rt):
+    g = Gaussians.random(8, seed=5, scale=0.02)
+    cam = look_camera(7, 160, 120)
+    t = 0.5
+    g.means[:, 3] = t                 # all at their temporal peak: m = 1
+    g.means[0, :3] = [0.0, 0.0, -2.0]                           # behind the camera
+    g.means[1, :3] = [50.0, 0.0, 3.0]                           # far off-screen
+    g.means[2, 3] = t + 10.0                                    # marginal ~ 0
+    g.scales[3] = -40.0                                         # degenerate: tiny (Sigma_tt ~ 0)
+    g.scales[4] = 60.0                                          # degenerate: huge (overflows)
+    g.means[5, 3] = t + 2.5 * np.exp(g.scales[5, 3])            # m = exp(-0.5 2.5^2) = 0.044 < 0.05 ...
+    g.quat_l[5] = g.quat_r[5] = [1, 0, 0, 0]                    # ... with Sigma_tt = s_t^2
+    g.means[6, 3] = t + 2.4 * np.exp(g.scales[6, 3])            # m = 0.056: kept
+    g.quat_l[6] = g.quat_r[6] = [1, 0, 0, 0]
+    g.means[7, :3] = [0.0, 0.0, 3.0]                            # ordinary, kept
+    assert math.exp(-0.5 * 2.5 ** 2) < MARGINAL_CULL < math.exp(-0.5 * 2.4 ** 2)
+    k, r = run_both(rt, g, cam, t, t + 0.1)
+    assert_forward_close(k, r)
+    expect_kept = np.array([0, 0, 0, 0, 0, 0, 1, 1], bool)
+    for out in (k, r):
+        kept = out["radius"] > 0
+        np.testing.assert_array_equal(kept, expect_kept)
+        for f in FLOAT_OUTS:
+            assert np.isfinite(out[f]).all()
+            assert (out[f][~kept] == 0).all(), f
+        assert (out["rect"][~kept] == 0).all() and (out["tiles_touched"][~kept] == 0).all()
