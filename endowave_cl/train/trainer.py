@@ -206,15 +206,18 @@ class Trainer:
             keep.sort()
             new_g = Gaussians(**{n: getattr(new_g, n)[keep] for n in PARAM_NAMES})
             source = source[keep]
-        self.params = upload(self.rt, new_g)
-        self.adam.remap(self.params, source)
+        self.set_gaussians(new_g, source)
+
+    def set_gaussians(self, g: Gaussians, source_index: np.ndarray):
+        """Replace the parameters; row i's Adam moments come from old row source_index[i] (< 0: zero)."""
+        self.params = upload(self.rt, g)
+        self.adam.remap(self.params, source_index)
         self._reset_stats()
 
     def reset_opacity(self):
         from .densify import reset_opacity
         g = reset_opacity(download(self.params), self.cfg.opacity_reset_value)
-        self.params = upload(self.rt, g)
-        self.adam.remap(self.params, np.arange(len(g)))
+        self.set_gaussians(g, np.arange(len(g)))
         self.adam.reset_moments("opacity")
 
     # ------------------------------------------------------------------ evaluation, checkpoints

@@ -1,0 +1,88 @@
+#!/usr/bin/env python
+"""Seconds per training step (render, losses, adjoints, Adam) at 640x512 with 100,000 Gaussians.
+
+Uses the shared real EndoNeRF frames when present (../shared/data/endonerf/pulling_soft_tissues),
+else a synthetic scene of the same size. Prints the median over --runs steps after --warmup steps,
+with the per-part split, the device and the sizes.
+
+    python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--no-flow] [--no-wavelet]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+SHARED_SCENE = Path(__file__).resolve().parents[2] / "shared" / "data" / "endonerf" / "pulling_soft_tissues"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default=str(SHARED_SCENE))
+    ap.add_argument("--gaussians", type=int, default=100_000)
+    ap.add_argument("--runs", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--no-flow", action="store_true")
+    ap.add_argument("--no-wavelet", action="store_true")
+    ap.add_argument("--device", default=None)
+    args = ap.parse_args(argv)
+
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.render import render, render_backward
+    from endowave_cl.runtime import get_runtime
+    from endowave_cl.train.config import TrainConfig
+    from endowave_cl.train.trainer import Trainer
+
+    scene_path = Path(args.scene)
+    if not (scene_path / "poses_bounds.npy").is_file():
+        from endowave_cl.data.synth import make_synthetic_scene
+        scene_path = Path(tempfile.mkdtemp()) / "synthetic_640"
+        print(f"shared frames absent: generating a synthetic 640x512 scene in {scene_path}")
+        make_synthetic_scene(scene_path, width=640, height=512, frames=16, seed=0)
+    scene = load_scene(scene_path)
+    rt = get_runtime(args.device)
+    cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
+                      use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0)
+    with tempfile.TemporaryDirectory() as run:
+        tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
+        n = len(tr.params["means"])
+        print(f"device: {rt.describe()}")
+        print(f"scene: {scene_path} ({scene.width}x{scene.height}), {n} Gaussians, losses: rgb"
+              f"{', depth' if cfg.use_depth and scene.has_depth else ''}{', flow' if cfg.use_flow else ''}"
+              f"{', wavelet' if cfg.use_wavelet else ''}; median of {args.runs} steps after {args.warmup}")
+        parts = {"render": [], "losses": [], "backward": [], "adam": [], "step": []}
+        order = list(scene.train_indices)
+        for i in range(args.warmup + args.runs):
+            k = order[i % len(order)]
+            f, tgt = scene.frames[k], tr.targets[k]
+            rt.queue.finish()
+            t0 = time.perf_counter()
+            out = render(rt, tr.params, f.camera, f.time, tgt.next_time)
+            rt.queue.finish()
+            t1 = time.perf_counter()
+            total, _, v = tr.losses_and_gradient(out, tgt)
+            rt.queue.finish()
+            t2 = time.perf_counter()
+            grads = render_backward(rt, tr.params, out, v, densify_stats=tr.stats)
+            rt.queue.finish()
+            t3 = time.perf_counter()
+            tr.adam.step(grads, tr.group_lrs(0))
+            rt.queue.finish()
+            t4 = time.perf_counter()
+            if i >= args.warmup:
+                for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("adam", t3, t4),
+                                  ("step", t0, t4)):
+                    parts[key].append(b - a)
+        for key, ts in parts.items():
+            print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
+        print(f"seconds per training step: {statistics.median(parts['step']):.3f}")
+
+
+if __name__ == "__main__":
+    main()
