@@ -41,12 +41,18 @@ def save_npy_atomic(path, array: np.ndarray) -> None:
     write_bytes_atomic(path, buf.getvalue())
 
 
-def save_png(path, image: np.ndarray) -> None:
-    """Encode ``image`` (uint8 or uint16, [H, W] or [H, W, 3] in BGR order) as PNG, atomically."""
+def save_png(path, image: np.ndarray, atomic: bool = True) -> None:
+    """Encode ``image`` (uint8 or uint16, [H, W] or [H, W, 3] in BGR order) as PNG.
+
+    ``atomic=False`` writes directly: for files inside a temporary folder that is renamed as a whole.
+    """
     ok, buf = cv2.imencode(".png", image)
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
-    write_bytes_atomic(path, buf.tobytes())
+    if atomic:
+        write_bytes_atomic(path, buf.tobytes())
+    else:
+        Path(path).write_bytes(buf.tobytes())
 
 
 @contextlib.contextmanager
