@@ -1,0 +1,146 @@
+"""Adaptive density control in 4D (3DGS's clone / split / prune, 4DGS's 4D split), on the host.
+
+``densify_and_prune`` works on a host copy (``Gaussians``) of the parameters, every few hundred
+steps; the trainer uploads the result and rebuilds the Adam moments with ``source_index``.
+
+Rules (3DGS defaults from TrainConfig):
+- A Gaussian is a candidate when its mean screen-space gradient grad_accum / count (NDC units,
+  accumulated by rasterize_bwd) is >= densify_grad_threshold.
+- Candidates whose largest spatial scale is <= percent_dense x extent are CLONED (an identical
+  copy is appended; the original stays).
+- Larger candidates are SPLIT into split_children children whose 4D centres are sampled from the
+  parent's own 4D Gaussian N(mu, R S S^T R^T) (so children get new times, not only new
+  positions); the children's spatial scales are the parent's / 1.6, every other parameter is
+  copied.  The TIME scale is kept: the split is triggered by a screen-space (spatial) gradient,
+  which says nothing about temporal resolution, and shrinking the lifetime would make children
+  vanish between training frames.  The parent is removed.
+- When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
+  it, those with the largest gradient are taken first.
+- Then PRUNE: sigmoid(opacity) < prune_opacity; and, when ``prune_big`` (3DGS turns this on after
+  the first opacity reset), Gaussians whose max screen radius (pixels) exceeded prune_screen_size
+  or whose largest spatial scale exceeds prune_world_size x extent.  Screen radii are only known
+  for rows that existed before this call: new rows (clones, children) are not screen-pruned.
+  (3DGS resets its radii before this test, which disables it; we apply it as intended.)
+
+Output order: surviving original rows (ascending old index), then clones, then split children.
+``source_index[i]`` is the old row that new row i came from (clones and children: their parent);
+``stats["is_new"]`` marks the rows the trainer must give zero Adam moments, and
+``moment_source_index`` turns the pair into what ``DeviceAdam.remap`` takes.
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+from ..gaussians import PARAM_NAMES, Gaussians
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
+
+
+def logit(p: float) -> float:
+    return float(math.log(p / (1.0 - p)))
+
+
+def rotation_4d(g: Gaussians) -> np.ndarray:
+    """[N, 4, 4] float64 rotations R = M_left(q_l) M_right(q_r) (convention of reference/project.py)."""
+    import torch
+    from ..reference.project import rotation4d
+    return rotation4d(torch.from_numpy(g.quat_l.astype(np.float64)),
+                      torch.from_numpy(g.quat_r.astype(np.float64))).numpy()
+
+
+def covariance_4d(g: Gaussians) -> np.ndarray:
+    """[N, 4, 4] float64 Sigma = R S S^T R^T of every Gaussian."""
+    M = rotation_4d(g) * np.exp(g.scales.astype(np.float64))[:, None, :]  # R diag(S)
+    return M @ np.swapaxes(M, -1, -2)
+
+
+def _take(g: Gaussians, rows: np.ndarray) -> Dict[str, np.ndarray]:
+    return {n: getattr(g, n)[rows] for n in PARAM_NAMES}
+
+
+def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, max_radius: np.ndarray,
+                      cfg, extent: float, rng: np.random.Generator, prune_big: bool = True,
+                      stats: Optional[dict] = None) -> Tuple[Gaussians, np.ndarray]:
+    """Clone, split (4D) and prune; see the module docstring.  Returns (new_g, source_index [M]).
+
+    grad_accum [N], count [N] (number of views that saw each Gaussian), max_radius [N] (pixels);
+    extent: scene extent (world units); stats (optional dict) receives cloned / split / pruned
+    counts and is_new [M] bool.
+    """
+    N = len(g)
+    grad_accum = np.asarray(grad_accum, np.float64).reshape(N)
+    count = np.asarray(count, np.float64).reshape(N)
+    max_radius = np.asarray(max_radius, np.float64).reshape(N)
+    mean_grad = np.where(count > 0, grad_accum / np.maximum(count, 1.0), 0.0)  # [N]
+    max_scale = np.exp(g.scales[:, :3].astype(np.float64)).max(1) if N else np.zeros(0)  # [N]
+
+    candidate = mean_grad >= cfg.densify_grad_threshold
+    budget = max(0, int(cfg.max_gaussians) - N)
+    children = int(cfg.split_children)
+    small = max_scale <= cfg.percent_dense * extent
+    cost = np.where(small, 1, children - 1)  # rows added: a clone adds 1, a split children - 1
+    chosen = np.zeros(N, bool)
+    if candidate.any() and budget > 0:
+        order = np.flatnonzero(candidate)
+        order = order[np.argsort(-mean_grad[order], kind="stable")]  # largest gradient first
+        fits = np.cumsum(cost[order]) <= budget
+        chosen[order[fits]] = True
+    clone = chosen & small        # [N]
+    split = chosen & ~small       # [N]
+
+    # -- clones: exact copies of their parent ----------------------------------------------------
+    clone_rows = np.flatnonzero(clone)
+    # -- split children: centres sampled from the parent's 4D Gaussian ---------------------------
+    split_rows = np.flatnonzero(split)
+    parents = np.repeat(split_rows, children)                                  # [S * children]
+    child = _take(g, parents)
+    if parents.size:
+        sub = Gaussians(**child)
+        R = rotation_4d(sub)                                                   # [S*c, 4, 4]
+        std = np.exp(sub.scales.astype(np.float64))                           # [S*c, 4]
+        z = rng.standard_normal((parents.size, 4)) * std                      # N(0, S S^T)
+        child["means"] = (sub.means.astype(np.float64) + np.einsum("nij,nj->ni", R, z)).astype(np.float32)
+        scales = child["scales"].copy()
+        scales[:, :3] -= np.float32(math.log(cfg.split_scale_divisor))
+        child["scales"] = scales
+
+    keep_rows = np.flatnonzero(~split)
+    parts = [_take(g, keep_rows), _take(g, clone_rows), child]
+    new = {n: np.concatenate([p[n] for p in parts], 0) for n in PARAM_NAMES}
+    source = np.concatenate([keep_rows, clone_rows, parents]).astype(np.int64)   # [M]
+    is_new = np.concatenate([np.zeros(keep_rows.size, bool), np.ones(clone_rows.size + parents.size, bool)])
+    radius_known = np.concatenate([max_radius[keep_rows], np.zeros(clone_rows.size + parents.size)])
+
+    # -- prune ------------------------------------------------------------------------------------
+    prune = sigmoid(new["opacity"]) < cfg.prune_opacity
+    if prune_big:
+        new_max_scale = np.exp(new["scales"][:, :3].astype(np.float64)).max(1) if source.size else np.zeros(0)
+        prune |= radius_known > cfg.prune_screen_size
+        prune |= new_max_scale > cfg.prune_world_size * extent
+    alive = ~prune
+    out = Gaussians(**{n: a[alive] for n, a in new.items()})
+    if stats is not None:
+        stats.update(cloned=int(clone_rows.size), split=int(split_rows.size), pruned=int(prune.sum()),
+                     is_new=is_new[alive])
+    return out, source[alive]
+
+
+def moment_source_index(source_index: np.ndarray, is_new: np.ndarray) -> np.ndarray:
+    """source_index with -1 on new rows: what DeviceAdam.remap needs to zero their moments."""
+    return np.where(np.asarray(is_new, bool), -1, np.asarray(source_index)).astype(np.int64)
+
+
+def reset_opacity(g: Gaussians, value: float = 0.01) -> Gaussians:
+    """3DGS opacity reset: opacity = min(opacity, value) (as logits); the other parameters are kept.
+
+    The trainer should also zero the Adam moments of the opacity group (DeviceAdam.reset_moments).
+    """
+    d = g.as_dict()
+    d = {n: a.copy() for n, a in d.items()}
+    d["opacity"] = np.minimum(d["opacity"], np.float32(logit(value)))
+    return Gaussians(**d)
