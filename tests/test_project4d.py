@@ -245,3 +245,149 @@ def test_culling_rules(rt):
             assert np.isfinite(out[f]).all()
             assert (out[f][~kept] == 0).all(), f
         assert (out["rect"][~kept] == 0).all() and (out["tiles_touched"][~kept] == 0).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# adjoint: kernel vs torch autograd of the reference (float64, so it is the exact derivative)
+
+GRAD_NAMES = ("means", "scales", "quat_l", "quat_r", "opacity", "sh", "phase")
+
+
+def make_culled(g: Gaussians, t: float):
+    """Turn a few rows into Gaussians the forward culls (so their gradient must be 0)."""
+    if len(g) >= 4:
+        g.means[0, 2] = -1.0                  # behind the camera
+        g.means[1, 3] = t + 20.0              # marginal ~ 0
+        g.means[2, :3] = [40.0, 0.0, 3.0]     # off-screen
+
+
+def run_adjoint(rt, g, cam, t, t_flow, channels=6, seed=0):
+    n = len(g)
+    rng = np.random.default_rng(seed)
+    v = {"means2d": rng.standard_normal((n, 2)), "conic": rng.standard_normal((n, 3)),
+         "opac": rng.standard_normal(n), "features": rng.standard_normal((n, channels))}
+    v = {k: a.astype(np.float32) for k, a in v.items()}
+    import pyopencl.array as cla
+    prm = upload(rt, g)
+    p = project4d(rt, prm, cam, t, t_flow, channels)
+    dv = [cla.to_device(rt.queue, v[k]) for k in ("means2d", "conic", "opac", "features")]
+    kg = {k[2:]: a.get() for k, a in project4d_bwd(rt, prm, cam, t, t_flow, p, *dv).items()}
+    P = torch_params(g, torch.float64)
+    for x in P.values():
+        x.requires_grad_(True)
+    r = project4d_ref(P, cam, t, t_flow, channels)
+    loss = sum((r[k] * torch.from_numpy(v[k]).double()).sum() for k in v)
+    if loss.requires_grad:   # False when every Gaussian is culled
+        loss.backward()
+    rg = {k: P[k].grad.numpy() if P[k].grad is not None else np.zeros(P[k].shape) for k in GRAD_NAMES}
+    return kg, rg, r["radius"].numpy()
+
+
+def assert_grads_close(kg, rg, radius):
+    culled = radius <= 0
+    n = len(radius)
+    geo = ("means", "scales", "quat_l", "quat_r")
+    # largest geometric gradient of each Gaussian: float32 round-off in one Gaussian's chain scales
+    # with it (an entry that is exactly 0 by symmetry comes out as ~1e-7 of it in float32)
+    geo_rows = np.max([np.abs(rg[k]).reshape(n, -1).max(1) for k in geo], 0) if n else np.zeros(0)
+    for name in GRAD_NAMES:
+        a, b = kg[name], rg[name]
+        assert a.shape == b.shape, name
+        assert np.isfinite(a).all(), name
+        assert (a[culled] == 0).all() and (b[culled] == 0).all(), name
+        # float32 kernel vs exact derivative: rtol 1e-3 plus an atol of 1e-4 of the largest entry of
+        # the same Gaussian's gradient (cancellations inside one Gaussian's chain) and 1e-6 of the
+        # largest over the scene (Gaussians near the camera have gradients 1e3 x the others).
+        rows = np.abs(b).reshape(n, -1).max(1) if n else np.zeros(0)
+        if name in geo:
+            rows = np.maximum(rows, 1e-2 * geo_rows)
+        atol = 1e-4 * rows.reshape((-1,) + (1,) * (b.ndim - 1)) + 1e-6 * (np.abs(b).max() if b.size else 0)
+        assert_close(a, b, 1e-3, atol, "v_" + name)
+
+
+@pytest.mark.parametrize("n,seed,t,t_flow", [(1, 0, 0.5, None), (45, 1, 0.3, 0.4), (300, 2, 0.6, 0.5),
+                                             (600, 3, 0.9, 0.2)])
+def test_adjoint_matches_autograd(rt, n, seed, t, t_flow):
+    g = Gaussians.random(small(n, 7), seed=seed)
+    g.means[-1, 3] = t
+    make_culled(g, t)
+    kg, rg, radius = run_adjoint(rt, g, look_camera(seed), t, t_flow, seed=seed)
+    assert (radius > 0).sum() >= max(1, 0.3 * len(g))
+    for name in ("means", "scales", "quat_l", "quat_r", "opacity", "sh"):
+        assert np.abs(rg[name][radius > 0]).max() > 0, name   # every path really carries gradient
+    if t_flow is not None:
+        assert np.abs(rg["phase"]).max() > 0
+    assert_grads_close(kg, rg, radius)
+
+
+@pytest.mark.parametrize("degree,nt,channels", [(0, 0, 3), (1, 1, 4), (3, 2, 8)])
+def test_adjoint_other_sizes(rt, degree, nt, channels):
+    g = Gaussians.random(small(80, 5), seed=21, degree=degree, nt=nt)
+    make_culled(g, 0.4)
+    kg, rg, radius = run_adjoint(rt, g, look_camera(5), 0.4, 0.47, channels)
+    assert_grads_close(kg, rg, radius)
+
+
+def test_adjoint_flow_point_behind_camera(rt):
+    # a Gaussian moving along z (rotated in the (z, t) plane) whose conditional mean at t_flow is
+    # behind the near plane: its flow is 0 and carries no gradient, while the rest still does.
+    # (z, t) = quaternion (j, k) plane: exp(i a) on the left turns (1, i) and (j, k) by a, on the
+    # right turns (1, i) by a and (j, k) by -a, so q_l = exp(i a), q_r = exp(-i a) turns (j, k) only.
+    a = 0.5
+    g = xt_gaussian(0.0, 0.05, 0.4, np.array([0.0, 0.0, 0.3, 0.5]))
+    g.quat_l[0] = [math.cos(a), math.sin(a), 0.0, 0.0]
+    g.quat_r[0] = [math.cos(a), -math.sin(a), 0.0, 0.0]
+    R = rotation4d(torch.from_numpy(g.quat_l).double(), torch.from_numpy(g.quat_r).double())[0].numpy()
+    np.testing.assert_allclose(R[:2, :2], np.eye(2), atol=1e-6)
+    sig = covariance4d(*(torch.from_numpy(getattr(g, k)).double() for k in ("scales", "quat_l", "quat_r")))
+    vz = float(sig[0, 2, 3] / sig[0, 3, 3])
+    t_flow = 0.5 - math.copysign(2.0, vz)   # moves 2 |vz| towards the camera
+    assert 0.3 - 2 * abs(vz) < 0.01
+    cam = Camera(100.0, 100.0, 50.0, 50.0, 100, 100)
+    ref = project4d_ref(torch_params(g), cam, 0.5, t_flow)
+    kg, rg, radius = run_adjoint(rt, g, cam, 0.5, t_flow)
+    assert radius[0] > 0
+    assert (ref["features"][0, 4:] == 0).all()
+    assert np.abs(rg["means"][0]).max() > 0
+    assert_grads_close(kg, rg, radius)
+
+
+@pytest.mark.oclgrind
+def test_adjoint_tiny_oclgrind(rt):
+    g = Gaussians.random(7, seed=8)
+    make_culled(g, 0.5)
+    kg, rg, radius = run_adjoint(rt, g, look_camera(8, 48, 40), 0.5, 0.56)
+    assert_grads_close(kg, rg, radius)
+
+
+def test_empty_scene_adjoint(rt):
+    import pyopencl.array as cla
+    g = Gaussians.empty()
+    prm = upload(rt, g)
+    cam = look_camera(0)
+    p = project4d(rt, prm, cam, 0.5, None)
+    z = [cla.zeros(rt.queue, s, np.float32) for s in ((0, 2), (0, 3), (0,), (0, 6))]
+    grads = project4d_bwd(rt, prm, cam, 0.5, None, p, *z)
+    assert grads["v_sh"].shape == (0, 3, 16, 3) and grads["v_means"].shape == (0, 4)
+
+
+def test_reference_whole_stage_finite_differences():
+    # the reference itself (masks, clamps, safe-where) has correct float64 derivatives
+    g = Gaussians.random(4, seed=12)
+    g.means[:, 3] = 0.5 + 0.1 * np.arange(4)
+    g.sh[:, :, 1:, :] = 0.0   # the view direction is detached: keep the colour independent of it
+    cam = look_camera(12)
+    P = torch_params(g, torch.float64)
+    names = ("means", "scales", "quat_l", "quat_r", "opacity", "phase")
+    rng = np.random.default_rng(0)
+    w = {k: torch.from_numpy(rng.standard_normal(s)) for k, s in
+         (("means2d", (4, 2)), ("conic", (4, 3)), ("opac", (4,)), ("features", (4, 6)))}
+
+    def f(*xs):
+        Q = dict(P)
+        Q.update(zip(names, xs))
+        r = project4d_ref(Q, cam, 0.55, 0.62)
+        return sum((r[k] * w[k]).sum() for k in w)
+
+    xs = tuple(P[k].clone().requires_grad_(True) for k in names)
+    assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4)

@@ -1,0 +1,243 @@
+/* project4d adjoint: one work-item per Gaussian; recomputes the forward (p4_forward) and runs the
+ * chain rule back to the parameters.  No atomics: every Gaussian writes only its own rows.
+ * Reference adjoint: torch autograd of endowave_cl/reference/project.py::project4d_ref.
+ * Notation: v_x = dL/dx.  2x2 / 3x3 / 4x4 matrices are row-major. */
+#include "project4d_common.h"
+
+/* d/dq of a matrix that is linear in q: v_q[k] = <v_M, M(e_k)> (Frobenius), for M_left or M_right */
+inline void v_quat_from_matrix(const float *vM, int left, float *vq) {
+    for (int k = 0; k < 4; ++k) {
+        float e[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+        float E[16];
+        e[k] = 1.0f;
+        if (left) quat_left_matrix(e, E); else quat_right_matrix(e, E);
+        float acc = 0.0f;
+        for (int j = 0; j < 16; ++j) acc += vM[j] * E[j];
+        vq[k] = acc;
+    }
+}
+
+/* u = q / |q|:  v_q = (v_u - u (u . v_u)) / |q|  (the radial part of v_u is lost) */
+inline void v_quat_normalize(const float *u, float norm, const float *vu, float *vq) {
+    float d = u[0] * vu[0] + u[1] * vu[1] + u[2] * vu[2] + u[3] * vu[3];
+    for (int k = 0; k < 4; ++k) vq[k] = (vu[k] - u[k] * d) / norm;
+}
+
+__kernel void project4d_bwd(
+    const int n,
+    __global const float *means,     /* [N, 4] */
+    __global const float *scales,    /* [N, 4] */
+    __global const float *quat_l,    /* [N, 4] */
+    __global const float *quat_r,    /* [N, 4] */
+    __global const float *opacity,   /* [N] */
+    __global const float *sh,        /* [N, NT+1, SH_K, 3] */
+    __global const float *phase,     /* [N, NT+1] */
+    __global const float *cam_buf,   /* [CAM_SIZE] */
+    const float t,
+    const float t_flow,
+    const int has_flow,
+    const int tiles_x,
+    const int tiles_y,
+    __global const int *radius,      /* [N] forward output: 0 = culled */
+    __global const float *v_means2d, /* [N, 2] */
+    __global const float *v_conic,   /* [N, 3] */
+    __global const float *v_opac,    /* [N] */
+    __global const float *v_features,/* [N, CHANNELS] */
+    __global float *v_means,         /* [N, 4] */
+    __global float *v_scales,        /* [N, 4] */
+    __global float *v_quat_l,        /* [N, 4] */
+    __global float *v_quat_r,        /* [N, 4] */
+    __global float *v_opacity,       /* [N] */
+    __global float *v_sh,            /* [N, NT+1, SH_K, 3] */
+    __global float *v_phase)         /* [N, NT+1] */
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    P4Cam cam = p4_load_camera(cam_buf);
+    P4State s;
+    p4_forward(&cam, means, scales, quat_l, quat_r, i, t, tiles_x, tiles_y, &s);
+    const int nsh = (NT + 1) * SH_K * 3;
+    if (!s.valid || radius[i] <= 0) {
+        for (int k = 0; k < 4; ++k) {
+            v_means[4 * i + k] = 0.0f; v_scales[4 * i + k] = 0.0f;
+            v_quat_l[4 * i + k] = 0.0f; v_quat_r[4 * i + k] = 0.0f;
+        }
+        v_opacity[i] = 0.0f;
+        for (int k = 0; k < nsh; ++k) v_sh[nsh * i + k] = 0.0f;
+        for (int f = 0; f <= NT; ++f) v_phase[(NT + 1) * i + f] = 0.0f;
+        return;
+    }
+    float vf[6];
+    for (int c = 0; c < 6; ++c) vf[c] = (c < CHANNELS) ? v_features[CHANNELS * i + c] : 0.0f;
+
+    /* ---- TEASH colour (the view direction is not differentiated) ---- */
+    float d[3], Y[SH_K], cs[NT + 1], sn[NT + 1];
+    p4_view_dir(&cam, &s, d);
+    sh_basis(d, Y);
+    teash_cos_sin(phase, i, t, cs, sn);
+    float gcol[3];
+    for (int c = 0; c < 3; ++c) {
+        float acc = 0.0f;
+        for (int f = 0; f <= NT; ++f) {
+            float inner = 0.0f;
+            for (int k = 0; k < SH_K; ++k) inner += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
+            acc += inner * cs[f];
+        }
+        gcol[c] = (0.5f + acc > 0.0f) ? vf[c] : 0.0f;   /* max(0, .) passes the gradient where > 0 */
+    }
+    v_phase[(NT + 1) * i] = 0.0f;                        /* phi_0 is unused */
+    for (int f = 0; f <= NT; ++f) {
+        float vcos = 0.0f;                               /* dL/d cos(omega_f t + phi_f) */
+        for (int k = 0; k < SH_K; ++k)
+            for (int c = 0; c < 3; ++c) {
+                int idx = ((i * (NT + 1) + f) * SH_K + k) * 3 + c;
+                v_sh[idx] = gcol[c] * Y[k] * cs[f];
+                vcos += gcol[c] * Y[k] * sh[idx];
+            }
+        if (f > 0) v_phase[(NT + 1) * i + f] = -sn[f] * vcos;   /* d cos(a)/d phi = -sin(a) */
+    }
+
+    /* ---- opacity: opac = sigmoid(o) m ---- */
+    float sig = 1.0f / (1.0f + exp(-opacity[i]));
+    float vo = v_opac[i];
+    v_opacity[i] = vo * s.m * sig * (1.0f - sig);
+    float v_m = vo * sig;
+
+    /* ---- means2d, depth channel and flow ---- */
+    float x = s.p[0], y = s.p[1], z = s.p[2];
+    float iz = 1.0f / z, iz2 = iz * iz;
+    float vu0 = v_means2d[2 * i], vu1 = v_means2d[2 * i + 1];  /* total gradient on proj(p) */
+    float vp2[3] = {0.0f, 0.0f, 0.0f};
+    if (has_flow) {
+        float p2[3];
+        p4_flow_point(&cam, means, i, &s, t_flow, p2);
+        if (p2[2] >= cam.near) {
+            /* flow = proj(p2) - proj(p): -v_flow onto proj(p), J(p2)^T v_flow onto p2 */
+            vu0 -= vf[4]; vu1 -= vf[5];
+            float jz = 1.0f / p2[2];
+            vp2[0] = cam.fx * jz * vf[4];
+            vp2[1] = cam.fy * jz * vf[5];
+            vp2[2] = -cam.fx * p2[0] * jz * jz * vf[4] - cam.fy * p2[1] * jz * jz * vf[5];
+        }
+    }
+    /* proj(p) = (fx x/z + cx, fy y/z + cy): its Jacobian is the EWA J */
+    float vp[3];
+    vp[0] = cam.fx * iz * vu0;
+    vp[1] = cam.fy * iz * vu1;
+    vp[2] = -cam.fx * x * iz2 * vu0 - cam.fy * y * iz2 * vu1 + vf[3];  /* + depth channel z */
+
+    /* ---- conic = inverse(cov2d):  v_A = -Q G Q, G the symmetric gradient matrix of Q whose
+     * off-diagonal entries each take half of v_conic[1] (Q01 = Q10 is stored once) ---- */
+    float q0 = s.conic[0], q1 = s.conic[1], q2 = s.conic[2];
+    float g0 = v_conic[3 * i], g1 = 0.5f * v_conic[3 * i + 1], g2 = v_conic[3 * i + 2];
+    float qg00 = q0 * g0 + q1 * g1, qg01 = q0 * g1 + q1 * g2;  /* Q G */
+    float qg10 = q1 * g0 + q2 * g1, qg11 = q1 * g1 + q2 * g2;
+    float vA[4];                                               /* v_cov2d, symmetric [2, 2] */
+    vA[0] = -(qg00 * q0 + qg01 * q1);
+    vA[1] = -(qg00 * q1 + qg01 * q2);
+    vA[2] = -(qg10 * q0 + qg11 * q1);
+    vA[3] = -(qg10 * q1 + qg11 * q2);
+    /* the +0.3 low-pass is additive: v_A passes unchanged to T cov T^T.
+     * cov2d = T C T^T:  v_C = T^T v_A T,  v_T = 2 v_A T C  (v_A, C symmetric) */
+    float vC[9];
+    for (int r = 0; r < 3; ++r)
+        for (int j = 0; j < 3; ++j) {
+            float acc = 0.0f;
+            for (int a = 0; a < 2; ++a)
+                for (int b = 0; b < 2; ++b) acc += s.T[3 * a + r] * vA[2 * a + b] * s.T[3 * b + j];
+            vC[3 * r + j] = acc;
+        }
+    float TC[6];
+    for (int a = 0; a < 2; ++a)
+        for (int j = 0; j < 3; ++j)
+            TC[3 * a + j] = s.T[3 * a] * s.cov[j] + s.T[3 * a + 1] * s.cov[3 + j] + s.T[3 * a + 2] * s.cov[6 + j];
+    float vT[6];
+    for (int a = 0; a < 2; ++a)
+        for (int j = 0; j < 3; ++j) vT[3 * a + j] = 2.0f * (vA[2 * a] * TC[j] + vA[2 * a + 1] * TC[3 + j]);
+    /* T = J W:  v_J = v_T W^T; only J00, J02, J11, J12 are non-zero functions of p */
+    float vJ00 = 0.0f, vJ02 = 0.0f, vJ11 = 0.0f, vJ12 = 0.0f;
+    for (int j = 0; j < 3; ++j) {
+        vJ00 += vT[j] * cam.R[j];
+        vJ02 += vT[j] * cam.R[6 + j];
+        vJ11 += vT[3 + j] * cam.R[3 + j];
+        vJ12 += vT[3 + j] * cam.R[6 + j];
+    }
+    /* J00 = fx/z, J02 = -fx x/z^2, J11 = fy/z, J12 = -fy y/z^2 (J depends on the mean: no clamp) */
+    vp[0] += vJ02 * (-cam.fx * iz2);
+    vp[1] += vJ12 * (-cam.fy * iz2);
+    vp[2] += -vJ00 * cam.fx * iz2 - vJ11 * cam.fy * iz2
+             + 2.0f * vJ02 * cam.fx * x * iz2 * iz + 2.0f * vJ12 * cam.fy * y * iz2 * iz;
+
+    /* ---- p = W mu + t_view:  v_mu = W^T v_p (same for p2 / mu2) ---- */
+    float vmu[3], vmu2[3];
+    for (int r = 0; r < 3; ++r) {
+        vmu[r] = cam.R[r] * vp[0] + cam.R[3 + r] * vp[1] + cam.R[6 + r] * vp[2];
+        vmu2[r] = cam.R[r] * vp2[0] + cam.R[3 + r] * vp2[1] + cam.R[6 + r] * vp2[2];
+    }
+
+    /* ---- conditional: mu = mu_x + sxt k, k = dt/stt; mu2 = mu_x + sxt k2, k2 = dt2/stt;
+     * cov = Sxx - sxt sxt^T / stt;  m = exp(-dt^2 / (2 stt)) ---- */
+    float k2 = has_flow ? (t_flow - means[4 * i + 3]) / s.stt : 0.0f;
+    float v_sxt[3], w[3];
+    float v_k = 0.0f, v_k2 = 0.0f;
+    for (int r = 0; r < 3; ++r) {
+        w[r] = s.sxt[r] / s.stt;                                    /* the velocity Sigma_xt / Sigma_tt */
+        v_k += vmu[r] * s.sxt[r];
+        v_k2 += vmu2[r] * s.sxt[r];
+    }
+    float wCw = 0.0f;
+    for (int r = 0; r < 3; ++r) {
+        float Cw = vC[3 * r] * w[0] + vC[3 * r + 1] * w[1] + vC[3 * r + 2] * w[2];
+        v_sxt[r] = vmu[r] * s.k + vmu2[r] * k2 - 2.0f * Cw;       /* d(sxt sxt^T/stt) = 2 (v_C w) */
+        wCw += w[r] * Cw;
+    }
+    /* stt enters k, k2 (d(dt/stt)/dstt = -k/stt), the cov (+ w^T v_C w) and m (m dt^2/(2 stt^2)) */
+    float v_stt = -(v_k * s.k + v_k2 * k2) / s.stt + wCw + 0.5f * v_m * s.m * s.k * s.k;
+    /* mu_t enters dt and dt2 (both with sign -): k, k2 and the marginal (dm/ddt = -m k) */
+    float v_dt = v_k / s.stt - v_m * s.m * s.k;
+    float v_dt2 = v_k2 / s.stt;
+    for (int r = 0; r < 3; ++r) v_means[4 * i + r] = vmu[r] + vmu2[r];
+    v_means[4 * i + 3] = -(v_dt + v_dt2);
+
+    /* ---- Sigma = M M^T with M = R diag(S):  v_M = 2 V M, V the symmetric gradient of Sigma
+     * (off-diagonal Sigma_xt read once: half of it on each side) ---- */
+    float V[16];
+    for (int r = 0; r < 3; ++r) {
+        for (int j = 0; j < 3; ++j) V[4 * r + j] = vC[3 * r + j];   /* cov = Sxx - ...: v_Sxx = v_C */
+        V[4 * r + 3] = 0.5f * v_sxt[r];
+        V[12 + r] = 0.5f * v_sxt[r];
+    }
+    V[15] = v_stt;
+    float vR[16];
+    for (int r = 0; r < 4; ++r) {
+        for (int j = 0; j < 4; ++j) {
+            float acc = 0.0f;
+            for (int k = 0; k < 4; ++k) acc += V[4 * r + k] * s.M[4 * k + j];
+            vR[4 * r + j] = 2.0f * acc * s.S[j];   /* v_M = 2 V M; M = R S: v_R = v_M S */
+        }
+    }
+    for (int j = 0; j < 4; ++j) {
+        float acc = 0.0f;   /* v_S_j = sum_r v_M[r][j] R[r][j] = sum_r v_R[r][j] R[r][j] / S_j */
+        for (int r = 0; r < 4; ++r) acc += vR[4 * r + j] * s.R[4 * r + j];
+        v_scales[4 * i + j] = acc;   /* S = exp(scales): v_scales = v_S S = the sum above */
+    }
+    /* R = M_l M_r:  v_Ml = v_R M_r^T,  v_Mr = M_l^T v_R */
+    float vMl[16], vMr[16];
+    for (int r = 0; r < 4; ++r)
+        for (int j = 0; j < 4; ++j) {
+            float al = 0.0f, ar = 0.0f;
+            for (int k = 0; k < 4; ++k) {
+                al += vR[4 * r + k] * s.Mr[4 * j + k];
+                ar += s.Ml[4 * k + r] * vR[4 * k + j];
+            }
+            vMl[4 * r + j] = al;
+            vMr[4 * r + j] = ar;
+        }
+    float vu[4], vq[4];
+    v_quat_from_matrix(vMl, 1, vu);
+    v_quat_normalize(s.qln, s.ql_norm, vu, vq);
+    for (int k = 0; k < 4; ++k) v_quat_l[4 * i + k] = vq[k];
+    v_quat_from_matrix(vMr, 0, vu);
+    v_quat_normalize(s.qrn, s.qr_norm, vu, vq);
+    for (int k = 0; k < 4; ++k) v_quat_r[4 * i + k] = vq[k];
+}
