@@ -19,15 +19,17 @@ def test_config_defaults_follow_design():
 def test_load_config_toml_and_overrides(tmp_path):
     p = tmp_path / "c.toml"
     p.write_text("iterations = 200\nlr_opacity = 1\nuse_flow = false\n[train]\nseed = 7\n")
-    c = load_config(str(p), {"lambda_flow": "0.5", "use_depth": "false", "iterations": "300"})
+    c = load_config(str(p), {"flow_method": "deepflow", "lambda_flow": "0.5", "use_depth": "false", "iterations": "300"})
     assert c.iterations == 300 and c.lr_opacity == 1.0 and isinstance(c.lr_opacity, float)
     assert c.use_flow is False and c.use_depth is False and c.seed == 7 and c.lambda_flow == 0.5
+    assert c.flow_method == "deepflow"
     assert load_config(None, {}) == TrainConfig()
 
 
 @pytest.mark.parametrize("text,key", [("itrations = 3\n", "itrations"), ("iterations = 2.5\n", "iterations"),
                                       ("use_depth = 1\n", "use_depth"), ("lr_opacity = 'a'\n", "lr_opacity"),
-                                      ("iterations = 0\n", "iterations")])
+                                      ("iterations = 0\n", "iterations"),
+                                      ("flow_method = 3\n", "flow_method")])
 def test_load_config_bad_keys_name_file_and_key(tmp_path, text, key):
     p = tmp_path / "bad.toml"
     p.write_text(text)

@@ -26,6 +26,7 @@ class TrainConfig:
     downscale: float = 1.0          # image downscale factor (2 = half size)
     init_points: int = 30000        # Gaussians created by init_gaussians
     max_gaussians: int = 300000     # densification stops adding Gaussians beyond this count
+    flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
     sh_degree: int = 3
     temporal_freqs: int = 2
     # -- learning rates (Adam, eps 1e-15; see ops/adam.py) ----------------------------------------
@@ -83,7 +84,11 @@ _FIELDS = {f.name: f for f in fields(TrainConfig)}
 
 
 def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
-    kind = type(getattr(TrainConfig(), name))  # the default's type: int, float or bool
+    kind = type(getattr(TrainConfig(), name))  # the default's type: int, float, bool or str
+    if kind is str:
+        if not isinstance(value, str):
+            raise EndowaveError(f"{source}: key '{name}' expects str, got {type(value).__name__} {value!r}")
+        return value
     if from_text and isinstance(value, str):
         text = value.strip()
         try:

@@ -119,8 +119,9 @@ def image_losses(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional
     pred: image [H, W, 3], depth [H, W] (needed when depth is used), flow [H, W, 2] (when flow is).
     target: image, and optionally depth, mask, flow, flow_valid (None or absent = not available).
     cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet).
-    wavelet_loss(pred_image, gt_image, mask) -> scalar: the rational-wavelet term; required when
-    cfg.use_wavelet and cfg.lambda_wavelet > 0 (the term is never dropped silently).
+    wavelet_loss(pred_image, gt_image, mask) -> scalar: the rational-wavelet term, added (weighted
+    by cfg.lambda_wavelet, when cfg.use_wavelet) only when given: a trainer that computes the
+    wavelet loss and its gradient on the device adds them itself and passes None here.
     Terms whose inputs are missing (no depth maps, no flow for this frame) are left out.
     """
     mask = target.get("mask")
@@ -141,9 +142,7 @@ def image_losses(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional
         f = flow_loss(pred["flow"], target["flow"], valid)
         total = total + cfg.lambda_flow * f
         parts["flow"] = _f(f)
-    if cfg.use_wavelet and cfg.lambda_wavelet > 0:
-        if wavelet_loss is None:
-            raise ValueError("image_losses: cfg.use_wavelet is on but no wavelet_loss function was given")
+    if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_loss is not None:
         w = wavelet_loss(img, gt, mask)
         total = total + cfg.lambda_wavelet * w
         parts["wavelet"] = _f(w)
