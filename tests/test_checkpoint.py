@@ -54,3 +54,106 @@ def test_config_dict_round_trip():
     assert TrainConfig.from_dict(d) == c
     with pytest.raises(EndowaveError, match="unknown key 'bogus'"):
         TrainConfig.from_dict({**d, "bogus": 1})
+
+
+# -- checkpoints ---------------------------------------------------------------------------------
+import numpy as np  # noqa: E402
+
+from endowave_cl.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
+from endowave_cl.train.checkpoint import (checkpoint_path, latest_checkpoint, load_checkpoint,  # noqa: E402
+                                          save_checkpoint)
+
+
+def _adam_state(g, seed=0):
+    rng = np.random.default_rng(seed)
+    return {"step": 12,
+            "exp_avg": {n: rng.standard_normal(a.shape).astype(np.float32) for n, a in g.as_dict().items()},
+            "exp_avg_sq": {n: rng.random(a.shape).astype(np.float32) for n, a in g.as_dict().items()}}
+
+
+def test_checkpoint_round_trip(tmp_path):
+    g = Gaussians.random(9, seed=1)
+    st = _adam_state(g)
+    cfg = TrainConfig(iterations=55).to_dict()
+    p = save_checkpoint(checkpoint_path(tmp_path, 40), g, st, 40, cfg,
+                        {"extent": 2.5, "scene": "x/y", "grad_accum": np.arange(9, dtype=np.float32)})
+    assert p.name == "checkpoint_0000040.npz"
+    ck = load_checkpoint(p)
+    assert ck["step"] == 40 and ck["adam_state"]["step"] == 12
+    for n in PARAM_NAMES:
+        np.testing.assert_array_equal(getattr(ck["gaussians"], n), getattr(g, n))
+        np.testing.assert_array_equal(ck["adam_state"]["exp_avg"][n], st["exp_avg"][n])
+        np.testing.assert_array_equal(ck["adam_state"]["exp_avg_sq"][n], st["exp_avg_sq"][n])
+    assert TrainConfig.from_dict(ck["config"]) == TrainConfig(iterations=55)
+    assert ck["extra"]["extent"] == 2.5 and ck["extra"]["scene"] == "x/y"
+    np.testing.assert_array_equal(ck["extra"]["grad_accum"], np.arange(9))
+    # no Adam state, empty scene
+    p2 = save_checkpoint(tmp_path / "e.npz", Gaussians.empty(), None, 0, cfg, None)
+    ck2 = load_checkpoint(p2)
+    assert ck2["adam_state"] is None and len(ck2["gaussians"]) == 0 and ck2["extra"] == {}
+
+
+def test_latest_checkpoint(tmp_path):
+    assert latest_checkpoint(tmp_path) is None
+    assert latest_checkpoint(tmp_path / "missing") is None
+    g = Gaussians.random(2)
+    for s in (100, 2000, 300):
+        save_checkpoint(checkpoint_path(tmp_path, s), g, None, s, {}, {})
+    (tmp_path / "checkpoint_0009999.npz.abc.tmp").write_bytes(b"partial")
+    assert latest_checkpoint(tmp_path).name == "checkpoint_0002000.npz"
+
+
+def test_truncated_or_corrupt_checkpoint_gives_clear_error(tmp_path):
+    g = Gaussians.random(50)
+    p = save_checkpoint(tmp_path / "c.npz", g, _adam_state(g), 3, {}, {})
+    data = p.read_bytes()
+    for i, bad in enumerate([data[: len(data) // 2], data[:100], b"", b"not a zip file at all"]):
+        q = tmp_path / f"bad{i}.npz"
+        q.write_bytes(bad)
+        with pytest.raises(EndowaveError, match=rf"bad{i}\.npz: not a readable checkpoint"):
+            load_checkpoint(q)
+    # flip bytes inside the stored data: the zip CRC check catches it
+    flipped = bytearray(data)
+    mid = len(flipped) // 2
+    flipped[mid:mid + 16] = bytes(255 - b for b in flipped[mid:mid + 16])
+    q = tmp_path / "flipped.npz"
+    q.write_bytes(bytes(flipped))
+    with pytest.raises(EndowaveError, match=r"flipped\.npz"):
+        load_checkpoint(q)
+    with pytest.raises(EndowaveError, match="does not exist"):
+        load_checkpoint(tmp_path / "none.npz")
+
+
+def test_inconsistent_checkpoint_names_the_entry(tmp_path):
+    q = tmp_path / "other.npz"
+    np.savez(q, a=np.zeros(3))
+    with pytest.raises(EndowaveError, match=r"other\.npz: checkpoint has no entry 'format'"):
+        load_checkpoint(q)
+    g = Gaussians.random(4)
+    p = save_checkpoint(tmp_path / "s.npz", g, None, 1, {}, {})
+    with np.load(p) as z:
+        d = {k: z[k] for k in z.files}
+    d["param/opacity"] = np.zeros(3, np.float32)
+    np.savez(tmp_path / "shape.npz", **d)
+    with pytest.raises(EndowaveError, match=r"shape\.npz: param/opacity has shape \(3,\)"):
+        load_checkpoint(tmp_path / "shape.npz")
+
+
+def test_failed_write_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    g = Gaussians.random(5, seed=2)
+    p = save_checkpoint(tmp_path / "checkpoint_0000001.npz", g, None, 1, {}, {})
+    before = p.read_bytes()
+
+    def boom(f, **arrays):  # writes part of the file, then fails
+        f.write(b"PK\x03\x04 partial data")
+        raise RuntimeError("disk full")
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        save_checkpoint(p, Gaussians.random(7), None, 2, {}, {})
+    assert p.read_bytes() == before
+    assert [x.name for x in tmp_path.iterdir()] == [p.name]  # no temporary file left behind
+    monkeypatch.undo()
+    assert load_checkpoint(p)["step"] == 1
+    with pytest.raises(EndowaveError, match="cannot save extra"):
+        save_checkpoint(p, g, None, 3, {}, {"bad": object()})
+    assert p.read_bytes() == before
