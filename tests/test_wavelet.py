@@ -1,0 +1,149 @@
+"""OpenCL rational-wavelet kernels against the numpy reference; dot-product adjoint tests."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from conftest import small
+from endowave_cl.wavelet import filters as F
+from endowave_cl.wavelet import ops
+
+BANDS = F.BANDS
+
+
+def dev(rt, x):
+    return cla.to_device(rt.queue, np.ascontiguousarray(x, dtype=np.float32))
+
+
+def rand(shape, seed):
+    return np.random.default_rng(seed).standard_normal(shape).astype(np.float32)
+
+
+def dot(a, b):
+    return float(np.sum(np.asarray(a, np.float64) * np.asarray(b, np.float64)))
+
+
+# (shape, axis): short axes (n < R, n = 1, 2) exercise the repeated reflection
+CONV_CASES = [((5, 7, 3), 1), ((5, 7, 3), 0), ((1, 9, 2), 1), ((3, 2, 1), 1), ((2, 4, 3), 0),
+              ((33, 21, 3), 1), ((33, 21, 3), 0), ((17,), 0), ((6, 5, 4, 2), 2)]
+
+
+@pytest.mark.parametrize("shape,axis", CONV_CASES)
+@pytest.mark.parametrize("flen", [1, 3, 9, 13, 17])
+def test_conv_axis_matches_reference(rt, shape, axis, flen):
+    x = rand(shape, flen)
+    f = rand(flen, flen + 1)  # asymmetric: catches a flipped (correlation) kernel
+    got = ops.conv_axis(rt, dev(rt, x), f, axis).get()
+    np.testing.assert_allclose(got, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape,axis", CONV_CASES)
+@pytest.mark.parametrize("flen", [3, 13, 17])
+def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
+    x, y, f = rand(shape, 1), rand(shape, 2), rand(flen, 3)
+    Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
+    ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis).get()
+    lhs, rhs = dot(Ax, y), dot(x, ATy)
+    assert abs(lhs - rhs) <= 1e-5 * (1 + np.abs(Ax * y).sum())
+    # and elementwise against the explicit transpose of the reference operator
+    n = shape[axis]
+    M = np.stack([F.conv_axis(np.eye(n)[i], f, 0) for i in range(n)], axis=1)  # [n_out, n_in]
+    ref = np.moveaxis(np.tensordot(M.T, np.moveaxis(y.astype(np.float64), axis, 0), axes=(1, 0)), 0, axis)
+    np.testing.assert_allclose(ATy, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_adjoints_accumulate(rt):
+    x, y, f = rand((6, 5, 2), 4), rand((6, 5, 2), 5), rand(9, 6)
+    base = rand((6, 5, 2), 7)
+    out = dev(rt, base)
+    ops.v_conv_axis(rt, dev(rt, y), f, 1, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.v_conv_axis(rt, dev(rt, y), f, 1).get(), atol=1e-5)
+    yo = rand((4, 5, 2), 8)
+    out = dev(rt, base)
+    ops.v_resample_axis(rt, dev(rt, yo), 2, 0, 6, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.v_resample_axis(rt, dev(rt, yo), 2, 0, 6).get(), atol=1e-5)
+
+
+@pytest.mark.parametrize("q", [1, 2, 3, 5])
+@pytest.mark.parametrize("shape,axis", [((1, 3), 1), ((2, 7), 1), ((11, 4, 3), 0), ((11, 10, 3), 1), ((40, 2), 0)])
+def test_resample_matches_reference_and_adjoint(rt, q, shape, axis):
+    x = rand(shape, q)
+    got = ops.resample_axis(rt, dev(rt, x), q, axis).get()
+    ref = F.resample_axis(x, q, axis)
+    assert got.shape == ref.shape
+    np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+    y = rand(ref.shape, q + 10)
+    ATy = ops.v_resample_axis(rt, dev(rt, y), q, axis, shape[axis]).get()
+    assert ATy.shape == x.shape
+    assert abs(dot(got, y) - dot(x, ATy)) <= 1e-5 * (1 + np.abs(got * y).sum())
+    M = F.resample_weights(shape[axis], q)
+    ref_t = np.moveaxis(np.tensordot(M.T, np.moveaxis(y.astype(np.float64), axis, 0), axes=(1, 0)), 0, axis)
+    np.testing.assert_allclose(ATy, ref_t, rtol=1e-5, atol=1e-6)
+
+
+def test_a2_resampling_is_plain_dyadic_downsampling(rt):
+    x = rand((13, 11, 3), 0)
+    down = ops.resample_axis(rt, ops.resample_axis(rt, dev(rt, x), 1, 0), 1, 1).get()
+    np.testing.assert_array_equal(down, x[::2, ::2])  # bit-exact: weight 1, nothing interpolated
+
+
+def test_a2_transform_is_filtering_then_every_second_sample(rt):
+    x = rand((13, 11, 3), 1)
+    f = F.design_filters(1)
+    got = ops.decompose(rt, dev(rt, x), 1, 1)[0]
+    for band in BANDS:
+        fr, fc = F.BAND_FILTERS[band]
+        full = F.conv_axis(F.conv_axis(x, f[fr], 1), f[fc], 0)
+        np.testing.assert_allclose(got[band].get(), full[::2, ::2], rtol=1e-5, atol=1e-5)
+
+
+TRANSFORM_CASES = [((13, 11, 3), 1, 2), ((13, 11, 3), 2, 2), ((20, 31, 1), 3, 2), ((9, 8, 6), 2, 3),
+                   ((3, 5, 2), 2, 2), ((1, 1, 1), 1, 2), ((48, 40, 3), 4, 2)]
+
+
+@pytest.mark.parametrize("shape,q,levels", TRANSFORM_CASES)
+def test_decompose_matches_reference(rt, shape, q, levels):
+    x = rand(shape, 3)
+    got = ops.decompose(rt, dev(rt, x), q, levels)
+    ref = F.decompose(x, q, levels)
+    assert len(got) == levels
+    for j in range(levels):
+        for band in BANDS:
+            assert got[j][band].shape == ref[j][band].shape
+            np.testing.assert_allclose(got[j][band].get(), ref[j][band], rtol=1e-5, atol=2e-6)
+
+
+@pytest.mark.parametrize("shape,q,levels", TRANSFORM_CASES)
+def test_decompose_adjoint_dot_product(rt, shape, q, levels):
+    x = rand(shape, 5)
+    Ax = [{b: v.get() for b, v in lv.items()} for lv in ops.decompose(rt, dev(rt, x), q, levels)]
+    y = [{b: rand(Ax[j][b].shape, 10 * j + i) for i, b in enumerate(BANDS)} for j in range(levels)]
+    ATy = ops.v_decompose(rt, [{b: dev(rt, y[j][b]) for b in BANDS} for j in range(levels)], shape, q).get()
+    assert ATy.shape == x.shape
+    lhs = sum(dot(Ax[j][b], y[j][b]) for j in range(levels) for b in BANDS)
+    scale = sum(np.abs(Ax[j][b] * y[j][b]).sum() for j in range(levels) for b in BANDS)
+    assert abs(lhs - dot(x, ATy)) <= 1e-5 * (1 + scale)
+
+
+def test_random_sizes_against_reference(rt):
+    rng = np.random.default_rng(11)
+    for _ in range(small(6, 1)):
+        H, W, C = int(rng.integers(1, 40)), int(rng.integers(1, 40)), int(rng.integers(1, 5))
+        q = int(rng.integers(1, 6))
+        x = rng.random((H, W, C)).astype(np.float32)
+        got = ops.decompose(rt, dev(rt, x), q, 2)
+        ref = F.decompose(x, q, 2)
+        for j in range(2):
+            for band in BANDS:
+                np.testing.assert_allclose(got[j][band].get(), ref[j][band], rtol=1e-5, atol=2e-6,
+                                           err_msg=f"{(H, W, C)} q={q} level {j} {band}")
+
+
+def test_bad_inputs_are_refused(rt):
+    with pytest.raises(ValueError, match="odd"):
+        ops.conv_axis(rt, dev(rt, rand((4, 4), 0)), np.ones(4), 0)
+    with pytest.raises(TypeError):
+        ops.conv_axis(rt, cla.to_device(rt.queue, np.zeros((4, 4))), np.ones(3), 0)
+    with pytest.raises(ValueError, match="does not resample"):
+        ops.v_resample_axis(rt, dev(rt, rand((3,), 0)), 2, 0, 9)
