@@ -23,6 +23,8 @@ TINY_CONFIGS = [
     R.SortConfig(radix_bits=4, wg=4, items_min=3, items_max=3, groups_per_cu=1),
     R.SortConfig(radix_bits=8, wg=2, items_min=5, items_max=5, groups_per_cu=1),
     R.SortConfig(radix_bits=3, wg=32, items_min=1, items_max=2, groups_per_cu=1),
+    R.SortConfig(radix_bits=8, wg=1, items_min=9, items_max=9, groups_per_cu=1),
+    R.SortConfig(radix_bits=11, wg=1, items_min=40, items_max=40, groups_per_cu=1),
 ]
 
 
@@ -201,7 +203,7 @@ def test_sort_ten_million(rt):
 
 
 @pytest.mark.oclgrind
-@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_CONFIG, TINY_CONFIGS[0]])
+@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_CONFIG, TINY_CONFIGS[0], TINY_CONFIGS[3]])
 def test_sort_tiny(rt, cfg):
     rng = np.random.default_rng(1)
     n = small(1000, 1000)
