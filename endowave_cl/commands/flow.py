@@ -1,0 +1,60 @@
+"""Precompute pseudo ground-truth optical flow for a scene (EndoNeRF layout).
+
+Flow between consecutive training frames, both directions, with a forward-backward consistency
+mask (tool pixels excluded when the scene has masks), computed with OpenCV (DIS by default;
+DeepFlow and TV-L1 are slower and usually more accurate) and cached outside the scene
+(--cache-dir, else $ENDOWAVE_CL_CACHE/flow, else ~/.cache/endowave-cl/flow); training reuses the
+cache while the frames are unchanged.  If SCENE/flow/ holds user flow (.npy / .flo, see
+docs/DATA.md), it is checked and used instead.  For a synthetic scene (gt_flow/) the end-point
+error against the ground truth is printed.
+"""
+from __future__ import annotations
+
+import time
+
+
+def add_arguments(parser):
+    from ..data.flow import METHODS
+    parser.add_argument("scene", help="scene folder in the EndoNeRF layout")
+    parser.add_argument("--method", choices=METHODS, default="dis", help="flow estimator (default dis)")
+    parser.add_argument("--downscale", type=float, default=1.0,
+                        help="image downscale factor, as used for training (default 1)")
+    parser.add_argument("--cache-dir", default=None, help="cache root (default ~/.cache/endowave-cl/flow)")
+    parser.add_argument("--no-cache", action="store_true", help="compute without reading or writing the cache")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def gt_epe(scene, result):
+    """Mean end-point error on valid pixels against scene/gt_flow (consecutive pairs only), or None."""
+    import numpy as np
+    from pathlib import Path
+    gt_dir = Path(scene.path) / "gt_flow"
+    errs = []
+    for k, pair in result.items():
+        f = gt_dir / f"{scene.frames[k].name}.npy"
+        if pair.dst != k + 1 or not f.is_file() or scene.downscale != 1:
+            continue
+        valid = pair.valid > 0
+        if valid.any():
+            errs.append(float(np.linalg.norm(pair.flow - np.load(f), axis=-1)[valid].mean()))
+    return (float(np.mean(errs)), len(errs)) if errs else None
+
+
+def run(args) -> int:
+    import numpy as np
+    from ..data import flow_for_scene, load_scene
+    scene = load_scene(args.scene, downscale=args.downscale)
+    print(f"{args.scene}: {scene.summary()}")
+    start = time.perf_counter()
+    result = flow_for_scene(scene, method=args.method, cache=not args.no_cache,
+                            progress=not args.no_progress, cache_dir=args.cache_dir)
+    took = time.perf_counter() - start
+    valid = np.mean([p.valid.mean() for p in result.values()]) if result else 0.0
+    how = "computed" if result.computed else ("read" if result.method == "user" else "reused from cache")
+    where = f"; cache {result.cache_path}" if result.cache_path is not None else ""
+    print(f"{len(result)} pairs ({result.method}), {how} in {took:.1f} s, "
+          f"valid {100 * valid:.1f}% of pixels{where}")
+    epe = gt_epe(scene, result)
+    if epe is not None:
+        print(f"end-point error vs gt_flow on valid pixels: {epe[0]:.3f} px ({epe[1]} pairs)")
+    return 0
