@@ -55,9 +55,34 @@ def assert_close(a, b, rtol, atol, what):
                              f"{a[i]!r} vs {b[i]!r}")
 
 
+def at_rounding_boundary(r, rel=1e-5, tile_abs=1e-5):
+    """Rows whose integer outputs sit on a float rounding boundary: 3 sqrt(lambda_max) (before ceil)
+    within rel of an integer, or (mean2d -+ radius) / 16 (before floor / ceil) within tile_abs.  The kernel and torch
+    sum the same float32 products in different orders (and may fuse multiply-adds), so a value a few
+    ulps from an integer can round either way there; nowhere else may integers differ."""
+    q = r["conic"].astype(np.float64)
+    det = q[:, 0] * q[:, 2] - q[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, c = q[:, 2] / det, q[:, 0] / det          # cov2d = inverse(conic)
+        b = -q[:, 1] / det
+        mid = 0.5 * (a + c)
+        v = 3.0 * np.sqrt(mid + np.sqrt(np.maximum(mid * mid - (a * c - b * b), 0.0)))
+    near = np.abs(v - np.round(v)) <= rel * np.abs(v)
+    rad = r["radius"].astype(np.float64)
+    for j in range(2):
+        for sgn in (-1.0, 1.0):
+            e = (r["means2d"][:, j].astype(np.float64) + sgn * rad) / 16.0
+            near |= np.abs(e - np.round(e)) <= tile_abs
+    return near & (r["radius"] > 0)
+
+
 def assert_forward_close(k, r):
+    ok_rows = ~at_rounding_boundary(r)
+    assert ok_rows.sum() >= 0.99 * len(ok_rows)
     for f in INT_OUTS:
-        np.testing.assert_array_equal(k[f], r[f], err_msg=f)
+        np.testing.assert_array_equal(k[f][ok_rows], r[f][ok_rows], err_msg=f)
+        assert (np.abs(k[f].astype(np.int64) - r[f]).reshape(len(ok_rows), -1).max(1, initial=0)
+                <= np.where(ok_rows, 0, 1 if f != "tiles_touched" else 10 ** 6)).all(), f
     for f in ("means2d", "conic", "depth", "opac"):
         b = r[f].astype(np.float64)
         # atol: 1e-4 of the largest magnitude of the column (conic b can be ~0 next to large a, c)
