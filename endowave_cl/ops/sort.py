@@ -42,10 +42,12 @@ class SortConfig:
         return int(min(self.items_max, max(self.items_min, items)))
 
 
-# CPU (PoCL): few wide passes, long serial chunks, a handful of groups per core.
-CPU_CONFIG = SortConfig(radix_bits=8, wg=16, items_min=16, items_max=1 << 14, groups_per_cu=8)
+# CPU (PoCL): few wide passes (8-bit digits: 6 passes for 44 bits; 11-bit digits, 4 passes, were
+# no faster), one work-item per block (its scatter reuses the histogram's counts; measured
+# fastest, wg 4 and 16 no better), long serial chunks, a handful of blocks per core.
+CPU_CONFIG = SortConfig(radix_bits=8, wg=1, items_min=16, items_max=1 << 14, groups_per_cu=4)
 # GPU: narrow digits so that the [digit, work-item] table fits local memory with many
-# work-items; short chunks so that there are thousands of work-groups.
+# work-items; short chunks so that there are thousands of work-groups.  (Not yet timed on a GPU.)
 GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_per_cu=64)
 
 
