@@ -13,6 +13,7 @@ Prints the device, the sizes and the median wall time (ms, after warm-up, queue 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -83,6 +84,7 @@ def main(argv=None):
         groups_per_cu=a.groups_per_cu or base.groups_per_cu)
     print(f"device: {rt.describe()}")
     print(f"sort config: {cfg}; median of {a.repeat} runs after 2 warm-up runs")
+    print(f"host load average (1 min) at start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     rng = np.random.default_rng(0)
 
     for n in a.sizes:
