@@ -45,11 +45,15 @@ def _dims(params):
     return n, nt, K, degree
 
 
-def _options(degree: int, nt: int, channels: int):
-    # correctly rounded / and sqrt make the float radius and rect match the torch reference
-    return [f"-DSH_DEGREE={degree}", f"-DNT={nt}", f"-DCHANNELS={channels}",
-            f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f",
-            "-cl-fp32-correctly-rounded-divide-sqrt"]
+def _options(rt, degree: int, nt: int, channels: int):
+    opts = [f"-DSH_DEGREE={degree}", f"-DNT={nt}", f"-DCHANNELS={channels}",
+            f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f"]
+    # correctly rounded / and sqrt (where the device offers them; OpenCL 1.2 allows the option only
+    # then) bring the float radius / rect closer to the torch reference at ceil / floor boundaries
+    fp = getattr(rt.device, "single_fp_config", 0)
+    if fp & rt.cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
+        opts.append("-cl-fp32-correctly-rounded-divide-sqrt")
+    return opts
 
 
 def camera_buffer(rt, camera) -> cla.Array:
@@ -88,7 +92,7 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     _check_params(params, n)
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
-    k = rt.kernel("project4d.cl", "project4d", _options(degree, nt, channels))
+    k = rt.kernel("project4d.cl", "project4d", _options(rt, degree, nt, channels))
     k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
       np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
       params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
@@ -121,7 +125,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     channels = int(v_features.shape[1])
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
-    k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(degree, nt, channels))
+    k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
     k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
       np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
       params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
