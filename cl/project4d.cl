@@ -54,15 +54,14 @@ __kernel void project4d(
     sh_basis(d, Y);
     teash_cos_sin(phase, i, t, cs, sn);
     float out[6];
-    for (int c = 0; c < 3; ++c) {
-        float acc = 0.0f;
-        for (int f = 0; f <= NT; ++f) {
-            float inner = 0.0f;
-            for (int k = 0; k < SH_K; ++k) inner += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
-            acc += inner * cs[f];
-        }
-        out[c] = fmax(0.5f + acc, 0.0f);
+    float acc[3] = {0.0f, 0.0f, 0.0f};
+    for (int f = 0; f <= NT; ++f) {
+        float inner[3] = {0.0f, 0.0f, 0.0f};   /* sum_k c[f, k, rgb] Y_k: contiguous reads */
+        for (int k = 0; k < SH_K; ++k)
+            for (int c = 0; c < 3; ++c) inner[c] += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
+        for (int c = 0; c < 3; ++c) acc[c] += inner[c] * cs[f];
     }
+    for (int c = 0; c < 3; ++c) out[c] = fmax(0.5f + acc[c], 0.0f);
     out[3] = s.p[2];
     out[4] = 0.0f; out[5] = 0.0f;
     if (has_flow) {

@@ -75,26 +75,27 @@ __kernel void project4d_bwd(
     p4_view_dir(&cam, &s, d);
     sh_basis(d, Y);
     teash_cos_sin(phase, i, t, cs, sn);
+    float inner[(NT + 1) * 3];   /* sum_k c[f, k, rgb] Y_k, one read of the coefficients */
+    for (int f = 0; f <= NT; ++f)
+        for (int c = 0; c < 3; ++c) inner[3 * f + c] = 0.0f;
+    for (int f = 0; f <= NT; ++f)
+        for (int k = 0; k < SH_K; ++k)
+            for (int c = 0; c < 3; ++c)
+                inner[3 * f + c] += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
     float gcol[3];
     for (int c = 0; c < 3; ++c) {
         float acc = 0.0f;
-        for (int f = 0; f <= NT; ++f) {
-            float inner = 0.0f;
-            for (int k = 0; k < SH_K; ++k) inner += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
-            acc += inner * cs[f];
-        }
+        for (int f = 0; f <= NT; ++f) acc += inner[3 * f + c] * cs[f];
         gcol[c] = (0.5f + acc > 0.0f) ? vf[c] : 0.0f;   /* max(0, .) passes the gradient where > 0 */
     }
     v_phase[(NT + 1) * i] = 0.0f;                        /* phi_0 is unused */
     for (int f = 0; f <= NT; ++f) {
-        float vcos = 0.0f;                               /* dL/d cos(omega_f t + phi_f) */
         for (int k = 0; k < SH_K; ++k)
-            for (int c = 0; c < 3; ++c) {
-                int idx = ((i * (NT + 1) + f) * SH_K + k) * 3 + c;
-                v_sh[idx] = gcol[c] * Y[k] * cs[f];
-                vcos += gcol[c] * Y[k] * sh[idx];
-            }
-        if (f > 0) v_phase[(NT + 1) * i + f] = -sn[f] * vcos;   /* d cos(a)/d phi = -sin(a) */
+            for (int c = 0; c < 3; ++c) v_sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] = gcol[c] * Y[k] * cs[f];
+        /* dL/d cos(omega_f t + phi_f) = sum_c gcol_c inner_fc;  d cos(a)/d phi = -sin(a) */
+        if (f > 0)
+            v_phase[(NT + 1) * i + f] = -sn[f] * (gcol[0] * inner[3 * f] + gcol[1] * inner[3 * f + 1]
+                                                   + gcol[2] * inner[3 * f + 2]);
     }
 
     /* ---- opacity: opac = sigmoid(o) m ---- */
