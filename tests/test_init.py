@@ -129,4 +129,7 @@ def test_bad_inputs():
     with pytest.raises(EndowaveError, match="no training frames"):
         init_gaussians(_frames(), [], 0.1, 10, 5)
     with pytest.raises(EndowaveError, match="bounds"):
-        init_gaussians(_frames(depth=False), [0], 0.0, 10, 5)
+        init_gaussians(_frames(depth=False), [0], 0.1, -1.0, 5)
+    g = init_gaussians(_frames(depth=False, mask=False), [0], 0.0, 10.0, 10 ** 6)  # near 0: far / 1000
+    f = _frames(depth=False, mask=False)[0]
+    np.testing.assert_allclose(_project(f, g.means[:, :3].astype(np.float64))[2], math.sqrt(0.01 * 10), rtol=1e-5)

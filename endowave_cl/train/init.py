@@ -8,7 +8,7 @@ Without depth (a frame whose depth is None): the same with a constant depth D: a
 surface covering the view.  D is the median of the valid depths of the other training frames when
 some have depth, else sqrt(near * far), the midpoint of the bounds in log-depth (scale-free: the
 bounds of endoscopic scenes span orders of magnitude, e.g. [0.03, 250] for StereoMIS, where the
-arithmetic midpoint would sit far behind the tissue).  Seen from the training camera such a
+arithmetic midpoint would sit far behind the tissue); a near bound of 0 is replaced by far / 1000.  Seen from the training camera such a
 surface reproduces the frame exactly; training then moves it.
 
 Per Gaussian:
@@ -34,6 +34,7 @@ from ..gaussians import Gaussians, num_sh_bases
 SH_C0 = 0.28209479177387814   # Y_00: DC coefficient c gives colour 0.5 + SH_C0 * c
 INIT_OPACITY = 0.1
 TIME_SCALE_FRAMES = 2.0       # time std in units of the training frame spacing
+NEAR_FLOOR = 1e-3             # a near bound of 0 carries no scale: use far / 1000 instead
 MASK_THRESHOLD = 0.5          # mask values are 0 / 1; anything above 0.5 is supervised tissue
 
 
@@ -50,10 +51,10 @@ def prior_depth(frames, train_indices: Sequence[int], near: float, far: float) -
     vals = [v for v in vals if v.size]
     if vals:
         return float(np.median(np.concatenate(vals)))
-    if not (near > 0 and far > 0):
-        raise EndowaveError(f"init: the depth bounds must be positive to place the initial surface "
-                            f"(near {near}, far {far})")
-    return float(math.sqrt(near * far))
+    if not (far > 0 and near >= 0):
+        raise EndowaveError(f"init: the depth bounds must satisfy 0 <= near, 0 < far to place the initial "
+                            f"surface (near {near}, far {far})")
+    return float(math.sqrt(max(near, far * NEAR_FLOOR) * far))
 
 
 def _valid_pixels(frame, default_depth: float) -> tuple:
