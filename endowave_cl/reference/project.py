@@ -199,6 +199,7 @@ def _radius_rect(means2d, lmax, width, height):
 def project4d_ref(params: Dict[str, torch.Tensor], camera, t: float, t_flow: Optional[float] = None,
                   channels: int = 6) -> Dict[str, torch.Tensor]:
     """Reference project4d; see the module docstring.  params: the gaussians.py layout as tensors.
+    Differentiable in means2d, conic, opac, features (depth is the detached sort key).
 
     Returns means2d [N, 2], conic [N, 3], depth [N], radius [N] int32, opac [N],
     features [N, C] ([r, g, b, depth, flow_x, flow_y]), rect [N, 4] int32, tiles_touched [N] int32.
@@ -229,7 +230,9 @@ def project4d_ref(params: Dict[str, torch.Tensor], camera, t: float, t_flow: Opt
     out = dict(
         means2d=scatter(sp["means2d"], (N, 2)),
         conic=scatter(sp["conic"], (N, 3)),
-        depth=scatter(sp["depth"], (N,)),
+        # depth is the sort key only (the kernel adjoint takes no v_depth): detached; its gradient
+        # path is the depth feature channel features[:, 3]
+        depth=scatter(sp["depth"], (N,)).detach(),
         opac=scatter(sp["opac"], (N,)),
         features=scatter(sp["features"], (N, channels)),
     )
