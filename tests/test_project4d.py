@@ -416,3 +416,32 @@ def test_reference_whole_stage_finite_differences():
 
     xs = tuple(P[k].clone().requires_grad_(True) for k in names)
     assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_teash_colour_by_hand(rt):
+    # one static Gaussian straight ahead of an identity camera: view direction (0, 0, 1), where the
+    # 3DGS real SH are Y_0 = C0, Y_2 = C1 z = C1, Y_6 = C2[2] (2 z^2) = 2 C2[2], Y_12 = C3[3] 2 z^3,
+    # and every other basis is 0.  omega_n = 2 pi n / TEASH_PERIOD (= pi n with period 2).
+    from endowave_cl.gaussians import TEASH_PERIOD
+    from endowave_cl.reference.project import SH_C0, SH_C1, SH_C2, SH_C3
+    g = xt_gaussian(0.0, 0.05, 0.5, np.array([0.0, 0.0, 2.0, 0.4]))
+    g.sh[:] = 0.0
+    g.sh[0, 0, 0] = [0.3, -0.2, -3.0]       # DC, blue clamps at 0
+    g.sh[0, 0, 2] = [0.1, 0.0, 0.0]         # degree 1, z
+    g.sh[0, 1, 6] = [0.0, 0.4, 0.0]         # degree 2 at frequency 1
+    g.sh[0, 2, 12] = [0.0, 0.0, 0.5]        # degree 3 at frequency 2
+    g.sh[0, 1, 5] = [9.0, 9.0, 9.0]         # Y_5 = C2[1] y z = 0 here: must not matter
+    g.phase[0] = [5.0, 0.3, -1.1]           # phi_0 is unused
+    cam = Camera(100.0, 100.0, 50.0, 50.0, 100, 100)
+    t = 0.45
+    p = project4d(rt, upload(rt, g), cam, t).features.get()[0, :3]
+    w1, w2 = 2 * math.pi / TEASH_PERIOD, 4 * math.pi / TEASH_PERIOD
+    c1, c2 = math.cos(w1 * t + 0.3), math.cos(w2 * t - 1.1)
+    expect = [0.5 + SH_C0 * 0.3 + SH_C1 * 0.1,
+              0.5 - SH_C0 * 0.2 + 0.4 * 2 * SH_C2[2] * c1,
+              max(0.0, 0.5 - SH_C0 * 3.0 + 0.5 * 2 * SH_C3[3] * c2)]
+    np.testing.assert_allclose(p, expect, rtol=1e-5, atol=1e-6)
+    # a sign check of the degree-1 basis against 3DGS: Y_1 = -C1 y, Y_3 = -C1 x
+    Y = sh_basis(torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64), 1).numpy()
+    np.testing.assert_allclose(Y[0], [SH_C0, 0, 0, -SH_C1], atol=1e-15)
+    np.testing.assert_allclose(Y[1], [SH_C0, -SH_C1, 0, 0], atol=1e-15)
