@@ -172,3 +172,27 @@ def test_position_lr_schedule():
     assert math.isclose(position_lr(50, 100), 1.6e-5, rel_tol=1e-9)   # geometric midpoint
     assert math.isclose(position_lr(50, 100, extent=3.0), 4.8e-5, rel_tol=1e-9)
     assert position_lr(10, 100) > position_lr(11, 100)
+
+
+@pytest.mark.oclgrind
+def test_adam_frozen_group_without_gradient_and_empty_scene_oclgrind(rt):
+    """lr 0 with no gradient (placeholder buffer) next to live groups; then N = 0."""
+    g = Gaussians.random(2, seed=7, degree=1, nt=1)
+    params = upload(rt, g)
+    lrs = dict(LRS, phase=0.0)
+    opt = DeviceAdam(rt, params, lrs)
+    grads = _grads(g, np.random.default_rng(8))
+    dev = {n: _to_dev(rt, a) for n, a in grads.items()}
+    dev["phase"] = None
+    opt.step(dev)
+    np.testing.assert_array_equal(params["phase"].get(), g.phase)
+    lr = element_lrs("opacity", g.opacity.shape, lrs)
+    want, _, _ = adam_step(g.opacity, grads["opacity"], np.zeros(2, np.float32), np.zeros(2, np.float32), lr, 1)
+    np.testing.assert_allclose(params["opacity"].get(), want, rtol=1e-5, atol=2e-6)
+    with pytest.raises(EndowaveError, match="no gradient for parameter group 'means'"):
+        opt.step(dict(dev, means=None))
+    assert opt.state_dict()["step"] == 1  # a refused step is not counted
+    e = Gaussians.empty(degree=1, nt=1)
+    opt0 = DeviceAdam(rt, upload(rt, e), LRS)
+    opt0.step({n: _to_dev(rt, a) for n, a in e.as_dict().items()})
+    assert opt0.state_dict()["step"] == 1

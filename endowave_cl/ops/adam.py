@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import EndowaveError
 from ..gaussians import PARAM_NAMES
+from ..runtime import round_up
 
 BETA1 = 0.9
 BETA2 = 0.999
@@ -81,6 +82,7 @@ class DeviceAdam:
         import pyopencl.array as cla
         self.rt = rt
         self._cla = cla
+        self._cl = cl
         self.betas = (float(betas[0]), float(betas[1]))
         self.eps = float(eps)
         self.lrs: Dict[str, float] = {k: float(v) for k, v in lrs.items()}
@@ -115,10 +117,10 @@ class DeviceAdam:
         """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept."""
         if lrs:
             self.lrs.update({k: float(v) for k, v in lrs.items()})
-        self.step_count += 1
+        step = self.step_count + 1  # counted once the arguments are valid
         b1, b2 = self.betas
-        inv_bc1 = 1.0 / (1.0 - b1 ** self.step_count)
-        inv_sqrt_bc2 = 1.0 / math.sqrt(1.0 - b2 ** self.step_count)
+        inv_bc1 = 1.0 / (1.0 - b1 ** step)
+        inv_sqrt_bc2 = 1.0 / math.sqrt(1.0 - b2 ** step)
         args = []
         total = 0
         for n in PARAM_NAMES:
@@ -140,17 +142,16 @@ class DeviceAdam:
                      np.int32(count), np.int32(max(row, 1)), np.int32(split),
                      np.float32(lra), np.float32(lrb)]
             total += count
-        if total == 0:
-            return
         if total > MAX_ELEMENTS:
             raise EndowaveError(f"Adam: {total} parameters exceed the kernel's int index range")
+        self.step_count = step
+        if total == 0:
+            return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
                  np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
-        from ..runtime import round_up
         k = self.rt.kernel("adam.cl", "adam_step")
         k.set_args(*args)
-        import pyopencl as cl
-        cl.enqueue_nd_range_kernel(self.rt.queue, k, (round_up(total, WORK_GROUP),), (WORK_GROUP,))
+        self._cl.enqueue_nd_range_kernel(self.rt.queue, k, (round_up(total, WORK_GROUP),), (WORK_GROUP,))
 
     def reset_moments(self, name: str) -> None:
         """Zero one group's moments (3DGS does this for opacity at an opacity reset)."""
