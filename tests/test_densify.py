@@ -34,7 +34,8 @@ def test_clone_split_prune_hand_built():
     count = np.array([1, 3, 3, 1, 0, 1])          # 4: never seen: mean gradient 0
     radius = np.array([1, 2, 3, 4, 5, 500])       # 5: too big on screen
     stats = {}
-    out, src = densify_and_prune(g, grad, count, radius, CFG, EXTENT, np.random.default_rng(0), stats=stats)
+    out, src = densify_and_prune(g, grad, count, radius, CFG, EXTENT, np.random.default_rng(0), prune_big=True,
+                                 stats=stats)
     np.testing.assert_array_equal(src, [0, 1, 4, 1, 2, 2])
     assert (stats["cloned"], stats["split"], stats["pruned"]) == (1, 1, 2)
     np.testing.assert_array_equal(stats["is_new"], [False, False, False, True, True, True])
@@ -52,7 +53,7 @@ def test_clone_split_prune_hand_built():
         assert np.all(out.means[i] != g.means[2])
     assert not np.array_equal(out.means[4], out.means[5])
     # without big-Gaussian pruning row 5 survives
-    out2, src2 = densify_and_prune(g, grad, count, radius, CFG, EXTENT, np.random.default_rng(0), prune_big=False)
+    out2, src2 = densify_and_prune(g, grad, count, radius, CFG, EXTENT, np.random.default_rng(0))  # default off
     np.testing.assert_array_equal(src2, [0, 1, 4, 5, 1, 2, 2])
 
 
@@ -60,9 +61,9 @@ def test_world_size_prune_and_empty_scene():
     g = _scene(3)
     g.scales[1, 0] = math.log(0.5)  # > prune_world_size * extent
     z = np.zeros(3)
-    out, src = densify_and_prune(g, z, z, z, CFG, EXTENT, np.random.default_rng(0))
+    out, src = densify_and_prune(g, z, z, z, CFG, EXTENT, np.random.default_rng(0), prune_big=True)
     np.testing.assert_array_equal(src, [0, 2])
-    out, src = densify_and_prune(g, z, z, z, CFG, 10.0, np.random.default_rng(0))  # extent 10: kept
+    out, src = densify_and_prune(g, z, z, z, CFG, 10.0, np.random.default_rng(0), prune_big=True)  # extent 10
     np.testing.assert_array_equal(src, [0, 1, 2])
     e = Gaussians.empty()
     out, src = densify_and_prune(e, np.zeros(0), np.zeros(0), np.zeros(0), CFG, EXTENT, np.random.default_rng(0))

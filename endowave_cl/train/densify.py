@@ -16,8 +16,9 @@ Rules (3DGS defaults from TrainConfig):
   vanish between training frames.  The parent is removed.
 - When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
   it, those with the largest gradient are taken first.
-- Then PRUNE: sigmoid(opacity) < prune_opacity; and, when ``prune_big`` (3DGS turns this on after
-  the first opacity reset), Gaussians whose max screen radius (pixels) exceeded prune_screen_size
+- Then PRUNE: sigmoid(opacity) < prune_opacity; and, when ``prune_big`` (off by default; 3DGS
+  turns it on once step > opacity_reset_every, pass prune_big=step > cfg.opacity_reset_every),
+  Gaussians whose max screen radius (pixels) exceeded prune_screen_size
   or whose largest spatial scale exceeds prune_world_size x extent.  Screen radii are only known
   for rows that existed before this call: new rows (clones, children) are not screen-pruned.
   (3DGS resets its radii before this test, which disables it; we apply it as intended.)
@@ -64,7 +65,7 @@ def _take(g: Gaussians, rows: np.ndarray) -> Dict[str, np.ndarray]:
 
 
 def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, max_radius: np.ndarray,
-                      cfg, extent: float, rng: np.random.Generator, prune_big: bool = True,
+                      cfg, extent: float, rng: np.random.Generator, prune_big: bool = False,
                       stats: Optional[dict] = None) -> Tuple[Gaussians, np.ndarray]:
     """Clone, split (4D) and prune; see the module docstring.  Returns (new_g, source_index [M]).
 
