@@ -120,3 +120,25 @@ def test_reset_opacity_caps_at_value():
     np.testing.assert_allclose(sigmoid(r.opacity), [0.01, 0.001, 0.01], rtol=1e-5)
     np.testing.assert_array_equal(r.means, g.means)
     assert sigmoid(g.opacity[0]) == pytest.approx(0.5)  # the input is not modified
+
+
+def test_densify_then_adam_remap_zeroes_new_rows(rt):
+    from endowave_cl.gaussians import upload
+    from endowave_cl.ops.adam import DeviceAdam
+    g = _scene(4)
+    g.scales[3, :3] = LARGE
+    lrs = {"means": 1e-3, "scales": 1e-3, "quat_l": 1e-3, "quat_r": 1e-3, "opacity": 1e-2, "sh": 1e-3,
+           "phase": 1e-3}
+    opt = DeviceAdam(rt, upload(rt, g), lrs)
+    import pyopencl.array as cla
+    opt.step({n: cla.to_device(rt.queue, np.ones_like(a)) for n, a in g.as_dict().items()})
+    old = opt.state_dict()
+    grad = np.array([0, 1, 0, 1]) * CFG.densify_grad_threshold
+    stats = {}
+    new_g, src = densify_and_prune(g, grad, np.ones(4), np.zeros(4), CFG, EXTENT, np.random.default_rng(0),
+                                   stats=stats)
+    np.testing.assert_array_equal(src, [0, 1, 2, 1, 3, 3])
+    opt.remap(upload(rt, new_g), moment_source_index(src, stats["is_new"]))
+    st = opt.state_dict()
+    np.testing.assert_array_equal(st["exp_avg"]["opacity"][:3], old["exp_avg"]["opacity"][:3])
+    assert np.all(st["exp_avg"]["opacity"][3:] == 0) and np.all(st["exp_avg_sq"]["sh"][3:] == 0)
