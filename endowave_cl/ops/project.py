@@ -34,6 +34,20 @@ class Projected:
         return int(self.radius.shape[0])
 
 
+_POOLS: Dict[int, object] = {}
+
+
+def _allocator(rt):
+    """A memory pool per runtime: output and gradient buffers are reused across calls once the
+    previous call's arrays are freed (a fresh 60 MB buffer per call costs more than the kernel on
+    PoCL, which allocates and faults in new buffers on first use)."""
+    pool = _POOLS.get(id(rt))
+    if pool is None:
+        from pyopencl.tools import ImmediateAllocator, MemoryPool
+        pool = _POOLS[id(rt)] = MemoryPool(ImmediateAllocator(rt.queue))
+    return pool
+
+
 def _dims(params):
     sh = params["sh"]
     n = int(params["means"].shape[0])
@@ -82,11 +96,13 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     """Project every Gaussian at time t (flow to t_flow when given); see docs/ARCHITECTURE.md."""
     n, nt, K, degree = _dims(params)
     q = rt.queue
+    al = _allocator(rt)
+    f32, i32 = np.float32, np.int32
     out = Projected(
-        means2d=cla.empty(q, (n, 2), np.float32), conic=cla.empty(q, (n, 3), np.float32),
-        depth=cla.empty(q, (n,), np.float32), radius=cla.empty(q, (n,), np.int32),
-        opac=cla.empty(q, (n,), np.float32), features=cla.empty(q, (n, channels), np.float32),
-        rect=cla.empty(q, (n, 4), np.int32), tiles_touched=cla.empty(q, (n,), np.int32))
+        means2d=cla.empty(q, (n, 2), f32, allocator=al), conic=cla.empty(q, (n, 3), f32, allocator=al),
+        depth=cla.empty(q, (n,), f32, allocator=al), radius=cla.empty(q, (n,), i32, allocator=al),
+        opac=cla.empty(q, (n,), f32, allocator=al), features=cla.empty(q, (n, channels), f32, allocator=al),
+        rect=cla.empty(q, (n, 4), i32, allocator=al), tiles_touched=cla.empty(q, (n,), i32, allocator=al))
     if n == 0:
         return out
     _check_params(params, n)
@@ -114,11 +130,10 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     """
     n, nt, K, degree = _dims(params)
     q = rt.queue
-    grads = {
-        "v_means": cla.empty(q, (n, 4), np.float32), "v_scales": cla.empty(q, (n, 4), np.float32),
-        "v_quat_l": cla.empty(q, (n, 4), np.float32), "v_quat_r": cla.empty(q, (n, 4), np.float32),
-        "v_opacity": cla.empty(q, (n,), np.float32), "v_sh": cla.empty(q, (n, nt + 1, K, 3), np.float32),
-        "v_phase": cla.empty(q, (n, nt + 1), np.float32)}
+    al = _allocator(rt)
+    shapes = {"v_means": (n, 4), "v_scales": (n, 4), "v_quat_l": (n, 4), "v_quat_r": (n, 4),
+              "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
+    grads = {k: cla.empty(q, s, np.float32, allocator=al) for k, s in shapes.items()}
     if n == 0:
         return grads
     _check_params(params, n)
