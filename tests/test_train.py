@@ -1,11 +1,9 @@
 """End-to-end training on a tiny synthetic scene: PSNR rises, resume, bad input, NaN guard."""
 from __future__ import annotations
 
-import json
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -25,8 +25,8 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 
 from ..errors import EndowaveError
-from ..gaussians import PARAM_NAMES, Gaussians, download, upload
-from ..render import CHANNELS, DEPTH, FLOW, RGB, render, render_backward
+from ..gaussians import Gaussians, download, upload
+from ..render import DEPTH, FLOW, RGB, render, render_backward
 
 
 class TrainingDiverged(EndowaveError):
@@ -114,8 +114,7 @@ class Trainer:
         flows = {}
         if c.use_flow:
             from ..data.flow import flow_for_scene
-            for pair in flow_for_scene(sc, method=getattr(c, "flow_method", "dis"), progress=False):
-                flows[pair.index] = pair
+            flows = dict(flow_for_scene(sc, method=getattr(c, "flow_method", "dis"), progress=False))
         out = {}
         order = list(sc.train_indices)
         for j, k in enumerate(order):
@@ -129,7 +128,7 @@ class Trainer:
                 image=torch.from_numpy(np.ascontiguousarray(f.image, np.float32)), depth=depth, mask=mask,
                 flow=None if pair is None else torch.from_numpy(pair.flow),
                 flow_valid=None if pair is None else torch.from_numpy(pair.valid),
-                next_time=None if pair is None else float(sc.frames[pair.next_index].time),
+                next_time=None if pair is None else float(sc.frames[pair.dst].time),
                 image_dev=cla.to_device(self.rt.queue, np.ascontiguousarray(f.image, np.float32)) if c.use_wavelet else None,
                 mask_dev=(cla.to_device(self.rt.queue, np.ascontiguousarray(f.mask, np.float32))
                           if (c.use_wavelet and f.mask is not None) else None))
@@ -193,20 +192,15 @@ class Trainer:
                                    f"applied. Last checkpoint: {self.run_dir}. Try lower learning rates.")
 
     # ------------------------------------------------------------------ density control
-    def densify(self, prune_only: bool = False):
-        from .densify import densify_and_prune
-        g = download(self.params)
-        grad_accum, count = self.stats["grad_accum"].get(), self.stats["count"].get()
-        max_radius = self.stats["max_radius"].get()
-        if prune_only:
-            grad_accum = np.zeros_like(grad_accum)
-        new_g, source = densify_and_prune(g, grad_accum, count, max_radius, self.cfg, self.extent, self.rng)
-        if len(new_g) > self.cfg.max_gaussians:   # keep the most opaque ones
-            keep = np.argsort(-new_g.opacity)[: self.cfg.max_gaussians]
-            keep.sort()
-            new_g = Gaussians(**{n: getattr(new_g, n)[keep] for n in PARAM_NAMES})
-            source = source[keep]
-        self.set_gaussians(new_g, source)
+    def densify(self):
+        """3DGS density control in 4D on the host: clone, split (children sampled in space-time), prune."""
+        from .densify import densify_and_prune, moment_source_index
+        info: Dict[str, object] = {}
+        new_g, source = densify_and_prune(
+            download(self.params), self.stats["grad_accum"].get(), self.stats["count"].get(),
+            self.stats["max_radius"].get(), self.cfg, self.extent, self.rng,
+            prune_big=self.step > self.cfg.opacity_reset_every, stats=info)
+        self.set_gaussians(new_g, moment_source_index(source, info["is_new"]))  # new rows: zero moments
 
     def set_gaussians(self, g: Gaussians, source_index: np.ndarray):
         """Replace the parameters; row i's Adam moments come from old row source_index[i] (< 0: zero)."""
