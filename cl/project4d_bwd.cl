@@ -55,9 +55,10 @@ __kernel void project4d_bwd(
     if (i >= n) return;
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
-    p4_forward(&cam, means, scales, quat_l, quat_r, i, t, tiles_x, tiles_y, &s);
+    s.valid = radius[i] > 0;   /* culled by the forward: skip the recomputation */
+    if (s.valid) p4_forward(&cam, means, scales, quat_l, quat_r, i, t, tiles_x, tiles_y, &s);
     const int nsh = (NT + 1) * SH_K * 3;
-    if (!s.valid || radius[i] <= 0) {
+    if (!s.valid) {
         for (int k = 0; k < 4; ++k) {
             v_means[4 * i + k] = 0.0f; v_scales[4 * i + k] = 0.0f;
             v_quat_l[4 * i + k] = 0.0f; v_quat_r[4 * i + k] = 0.0f;
