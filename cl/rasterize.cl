@@ -13,12 +13,89 @@
  */
 #include "common.h"
 
+/* Shared with rasterize_bwd.cl, which includes this file with RASTERIZE_HELPERS_ONLY defined. */
+
+
 /* Exponent of the 2D Gaussian at offset d = mean - pixel; cop = (a, b, c, opac), the conic
  * (inverse 2D covariance) entries inv00, inv01, inv11. */
 inline float gauss_power(float4 cop, float2 d) {
     return -0.5f * (cop.x * d.x * d.x + cop.z * d.y * d.y) - cop.y * d.x * d.y;
 }
 
+/* exp(x) for x <= 0 in plain arithmetic (no builtin call, so PoCL can inline and vectorise it):
+ * Cody-Waite reduction x = k ln2 + r, |r| <= ln2 / 2, then a degree-7 Taylor polynomial of e^r
+ * (truncation < 1e-8 relative) and the scaling by 2^k in the exponent bits.  About 1 ulp from
+ * the correctly rounded value; x below EXP_FLOOR gives ~e^EXP_FLOOR (alpha far below ALPHA_MIN).
+ * Defined identically in rasterize_bwd.cl so both passes make the same skip decisions. */
+#define EXP_FLOOR (-80.0f)
+#define LN2_HI 0.693145751953125f           /* ln 2 split so that k * LN2_HI is exact */
+#define LN2_LO 1.428606765330187045e-06f
+#define LOG2E 1.44269504088896341f
+inline float exp_nonpos(float x) {
+    x = x < EXP_FLOOR ? EXP_FLOOR : x;
+    const int k = (int)(x * LOG2E - 0.5f);  /* round to nearest for x <= 0 */
+    const float kf = (float)k;
+    const float r = (x - kf * LN2_HI) - kf * LN2_LO;
+    float p = 1.0f / 5040.0f;
+    p = p * r + 1.0f / 720.0f;
+    p = p * r + 1.0f / 120.0f;
+    p = p * r + 1.0f / 24.0f;
+    p = p * r + 1.0f / 6.0f;
+    p = p * r + 0.5f;
+    p = p * r + 1.0f;
+    p = p * r + 1.0f;
+    return as_float(as_int(p) + (k << 23));
+}
+
+/* Early skip without exp: alpha = min(ALPHA_MAX, opac exp(power)) < ALPHA_MIN whenever
+ * power < log(ALPHA_MIN / opac) - SKIP_MARGIN.  SKIP_MARGIN (in log units, i.e. a 0.1% factor on
+ * alpha) is far above the rounding of exp and log, so the skip never drops a Gaussian the exact
+ * test keeps.  opac < ALPHA_MIN can never contribute: threshold +inf. */
+#define SKIP_MARGIN 1e-3f
+inline float skip_threshold(float opacity) {
+    return opacity >= ALPHA_MIN ? log(ALPHA_MIN / opacity) - SKIP_MARGIN : INFINITY;
+}
+
+/* Sub-block culling.  The tile is split into SUB x SUB pixel blocks; per batch, each block gets the
+ * ordered list of the batch's Gaussians whose box can reach one of its pixel centres, and a pixel
+ * walks only its block's list.  The box bounds the ellipse power >= skip threshold, i.e.
+ * d^T A d <= q with q = -2 thr: |dx| <= sqrt(q (A^-1)_xx) = sqrt(q c / det), |dy| <= sqrt(q a / det);
+ * widened by BOX_SLACK (relative) and BOX_PAD (pixels) against rounding.  Outside it every pixel
+ * would skip the Gaussian anyway, so the result is the same as walking the whole tile list.
+ * A conic that is not positive definite gets an infinite box (no culling). */
+#define SUB 4
+#define SUBS_PER_ROW (TILE / SUB)
+#define N_SUB (SUBS_PER_ROW * SUBS_PER_ROW)
+#define BOX_SLACK 1.001f
+#define BOX_PAD 0.01f
+inline float4 cull_box(float2 mean, float4 cop, float thr) {   /* (xmin, xmax, ymin, ymax) */
+    if (!(thr < 0.0f)) return (float4)(INFINITY, -INFINITY, INFINITY, -INFINITY);   /* never */
+    const float det = cop.x * cop.z - cop.y * cop.y;
+    if (!(det > 0.0f && cop.x > 0.0f && cop.z > 0.0f))
+        return (float4)(-INFINITY, INFINITY, -INFINITY, INFINITY);                  /* always */
+    const float q = -2.0f * thr;
+    const float ex = sqrt(q * cop.z / det) * BOX_SLACK + BOX_PAD;
+    const float ey = sqrt(q * cop.x / det) * BOX_SLACK + BOX_PAD;
+    return (float4)(mean.x - ex, mean.x + ex, mean.y - ey, mean.y + ey);
+}
+
+/* Work-item blk < N_SUB fills the list of sub-block blk (tile origin x0, y0 in pixels) with the
+ * indices j < count whose box holds one of the block's pixel centres, in increasing j. */
+inline void build_sub_lists(int blk, int count, int x0, int y0, __local const float4 *l_box,
+                            __local ushort *l_list, __local int *l_len) {
+    if (blk >= N_SUB) return;
+    const float bx0 = (float)(x0 + (blk % SUBS_PER_ROW) * SUB) + 0.5f, bx1 = bx0 + (float)(SUB - 1);
+    const float by0 = (float)(y0 + (blk / SUBS_PER_ROW) * SUB) + 0.5f, by1 = by0 + (float)(SUB - 1);
+    __local ushort *list = l_list + blk * TILE_PIXELS;
+    int n = 0;
+    for (int j = 0; j < count; j++) {
+        const float4 bb = l_box[j];
+        if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (ushort)j;
+    }
+    l_len[blk] = n;
+}
+
+#ifndef RASTERIZE_HELPERS_ONLY
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
 void rasterize(__global const float2 *means2d,   /* [N, 2] */
                __global const float *conic,      /* [N, 3] (a, b, c) */
@@ -35,6 +112,10 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
     __local float2 l_mean[TILE_PIXELS];
     __local float4 l_cop[TILE_PIXELS];           /* (a, b, c, opac) */
     __local float l_feat[TILE_PIXELS * C];
+    __local float l_thr[TILE_PIXELS];            /* power threshold of the early skip */
+    __local float4 l_box[TILE_PIXELS];           /* cull box of each Gaussian */
+    __local ushort l_list[N_SUB * TILE_PIXELS];  /* per sub-block lists of batch indices */
+    __local int l_len[N_SUB];
     __local int l_done[2];                       /* done-pixel counters, used alternately */
 
     const int lx = get_local_id(0), ly = get_local_id(1);
@@ -44,6 +125,7 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
     const int ix = get_global_id(0), iy = get_global_id(1);
     const bool inside = ix < width && iy < height;
     const float px = (float)ix + 0.5f, py = (float)iy + 0.5f;
+    const int my_sub = (ly / SUB) * SUBS_PER_ROW + lx / SUB;
 
     const int2 range = tile_ranges[tile];
     const int n_entries = range.y - range.x;
@@ -72,22 +154,43 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
             l_mean[lid] = means2d[g];
             l_cop[lid] = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
             for (int c = 0; c < C; c++) l_feat[lid * C + c] = features[g * C + c];
+            const float thr = skip_threshold(l_cop[lid].w);
+            l_thr[lid] = thr;
+            l_box[lid] = cull_box(l_mean[lid], l_cop[lid], thr);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
+        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len);
+        barrier(CLK_LOCAL_MEM_FENCE);
 
-        for (int j = 0; j < count && !done; j++) {
-            const float4 cop = l_cop[j];
-            const float2 d = l_mean[j] - (float2)(px, py);
-            const float power = gauss_power(cop, d);
-            if (power > 0.0f) continue;
-            const float alpha = fmin(ALPHA_MAX, cop.w * exp(power));
-            if (alpha < ALPHA_MIN) continue;
-            const float t_next = T * (1.0f - alpha);
-            if (t_next < T_STOP) { done = true; break; }
-            const float w = alpha * T;
-            for (int c = 0; c < C; c++) acc[c] += l_feat[j * C + c] * w;
-            T = t_next;
-            last = b * TILE_PIXELS + j + 1;
+        const int n_mine = l_len[my_sub];
+        __local const ushort *mine = l_list + my_sub * TILE_PIXELS;
+        if (!done) {
+            /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
+            float t_cur = T;
+            float a_cur[C];
+            for (int c = 0; c < C; c++) a_cur[c] = acc[c];
+            int last_cur = last;
+            bool stop = false;
+            for (int i = 0; i < n_mine; i++) {
+                const int j = mine[i];
+                const float4 cop = l_cop[j];
+                const float2 d = l_mean[j] - (float2)(px, py);
+                const float power = gauss_power(cop, d);
+                if (power > 0.0f || power < l_thr[j]) continue;
+                const float raw = cop.w * exp_nonpos(power);
+                const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
+                if (alpha < ALPHA_MIN) continue;
+                const float t_next = t_cur * (1.0f - alpha);
+                if (t_next < T_STOP) { stop = true; break; }
+                const float w = alpha * t_cur;
+                for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
+                t_cur = t_next;
+                last_cur = b * TILE_PIXELS + j + 1;
+            }
+            T = t_cur;
+            for (int c = 0; c < C; c++) acc[c] = a_cur[c];
+            last = last_cur;
+            done = stop;
         }
         barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the local arrays */
     }
@@ -100,3 +203,4 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
         last_out[p] = last;
     }
 }
+#endif  /* RASTERIZE_HELPERS_ONLY */

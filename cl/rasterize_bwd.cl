@@ -16,6 +16,8 @@
  * and alpha_k = opac_k G_k (G_k = exp(power)) unless the ALPHA_MAX clamp is active, where the
  * gradient to opac and power is zero.
  *
+ * Like the forward pass, a pixel walks only the list of its SUB x SUB sub-block (rasterize.cl).
+ *
  * Reduction: per batch, every Gaussian of the batch has a slot of local accumulators; the 256
  * pixels add into it with local CAS adds (atomic_add_local_f); after a barrier, work-item l adds
  * slot l to the global gradients with one atomic_add_global_f per value.  Order of the float adds
@@ -24,11 +26,8 @@
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
 #include "common.h"
-
-/* Exponent of the 2D Gaussian; same expression as in rasterize.cl. */
-inline float gauss_power(float4 cop, float2 d) {
-    return -0.5f * (cop.x * d.x * d.x + cop.z * d.y * d.y) - cop.y * d.x * d.y;
-}
+#define RASTERIZE_HELPERS_ONLY
+#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, build_sub_lists */
 
 #define NV (6 + C)   /* accumulated values per Gaussian: mean (2), conic (3), opac (1), features (C) */
 
@@ -53,6 +52,10 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local float4 l_cop[TILE_PIXELS];           /* (a, b, c, opac) */
     __local float l_feat[TILE_PIXELS * C];
     __local int l_gid[TILE_PIXELS];
+    __local float l_thr[TILE_PIXELS];
+    __local float4 l_box[TILE_PIXELS];
+    __local ushort l_list[N_SUB * TILE_PIXELS];
+    __local int l_len[N_SUB];
     __local float l_acc[TILE_PIXELS * NV];       /* [batch slot, NV] gradient accumulators */
     __local int l_max_last;
 
@@ -64,6 +67,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     const bool inside = ix < width && iy < height;
     const float px = (float)ix + 0.5f, py = (float)iy + 0.5f;
     const int p = iy * width + ix;
+    const int my_sub = (ly / SUB) * SUBS_PER_ROW + lx / SUB;
 
     const int2 range = tile_ranges[tile];
 
@@ -94,19 +98,27 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
             l_mean[lid] = means2d[g];
             l_cop[lid] = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
             for (int c = 0; c < C; c++) l_feat[lid * C + c] = features[g * C + c];
+            const float thr = skip_threshold(l_cop[lid].w);
+            l_thr[lid] = thr;
+            l_box[lid] = cull_box(l_mean[lid], l_cop[lid], thr);
         }
         for (int k = 0; k < NV; k++) l_acc[lid * NV + k] = 0.0f;
         barrier(CLK_LOCAL_MEM_FENCE);
+        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len);
+        barrier(CLK_LOCAL_MEM_FENCE);
 
-        const int j_end = min(count, last - b * TILE_PIXELS);   /* one past this pixel's last here */
-        for (int j = j_end - 1; j >= 0; j--) {
+        const int j_end = last - b * TILE_PIXELS;   /* one past this pixel's last contributor here */
+        __local const ushort *mine = l_list + my_sub * TILE_PIXELS;
+        for (int i = l_len[my_sub] - 1; i >= 0; i--) {
+            const int j = mine[i];
+            if (j >= j_end) continue;
             const float4 cop = l_cop[j];
             const float2 d = l_mean[j] - (float2)(px, py);
             const float power = gauss_power(cop, d);
-            if (power > 0.0f) continue;
-            const float G = exp(power);
+            if (power > 0.0f || power < l_thr[j]) continue;
+            const float G = exp_nonpos(power);
             const float raw = cop.w * G;
-            const float alpha = fmin(ALPHA_MAX, raw);
+            const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
             if (alpha < ALPHA_MIN) continue;
             const float one_m = 1.0f - alpha;
             T = T / one_m;                           /* transmittance in front of Gaussian j */
