@@ -80,17 +80,18 @@ inline float4 cull_box(float2 mean, float4 cop, float thr) {   /* (xmin, xmax, y
 }
 
 /* Work-item blk < N_SUB fills the list of sub-block blk (tile origin x0, y0 in pixels) with the
- * indices j < count whose box holds one of the block's pixel centres, in increasing j. */
+ * indices j < count (<= 256, so they fit a uchar) whose box holds one of the block's pixel
+ * centres, in increasing j.  List blk starts at l_list + blk * stride. */
 inline void build_sub_lists(int blk, int count, int x0, int y0, __local const float4 *l_box,
-                            __local ushort *l_list, __local int *l_len) {
+                            __local uchar *l_list, __local int *l_len, int stride) {
     if (blk >= N_SUB) return;
     const float bx0 = (float)(x0 + (blk % SUBS_PER_ROW) * SUB) + 0.5f, bx1 = bx0 + (float)(SUB - 1);
     const float by0 = (float)(y0 + (blk / SUBS_PER_ROW) * SUB) + 0.5f, by1 = by0 + (float)(SUB - 1);
-    __local ushort *list = l_list + blk * TILE_PIXELS;
+    __local uchar *list = l_list + blk * stride;
     int n = 0;
     for (int j = 0; j < count; j++) {
         const float4 bb = l_box[j];
-        if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (ushort)j;
+        if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (uchar)j;
     }
     l_len[blk] = n;
 }
@@ -114,7 +115,7 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
     __local float l_feat[TILE_PIXELS * C];
     __local float l_thr[TILE_PIXELS];            /* power threshold of the early skip */
     __local float4 l_box[TILE_PIXELS];           /* cull box of each Gaussian */
-    __local ushort l_list[N_SUB * TILE_PIXELS];  /* per sub-block lists of batch indices */
+    __local uchar l_list[N_SUB * TILE_PIXELS];   /* per sub-block lists of batch indices */
     __local int l_len[N_SUB];
     __local int l_done[2];                       /* done-pixel counters, used alternately */
 
@@ -159,11 +160,11 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
             l_box[lid] = cull_box(l_mean[lid], l_cop[lid], thr);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
-        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len);
+        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len, TILE_PIXELS);
         barrier(CLK_LOCAL_MEM_FENCE);
 
         const int n_mine = l_len[my_sub];
-        __local const ushort *mine = l_list + my_sub * TILE_PIXELS;
+        __local const uchar *mine = l_list + my_sub * TILE_PIXELS;
         if (!done) {
             /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             float t_cur = T;

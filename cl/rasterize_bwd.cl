@@ -30,6 +30,9 @@
 #include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, build_sub_lists */
 
 #define NV (6 + C)   /* accumulated values per Gaussian: mean (2), conic (3), opac (1), features (C) */
+/* Gaussians per batch: half the forward's, so that the local arrays (about 19 KiB for C = 6) fit
+ * the 32 KiB of the smallest devices we run on (Oclgrind). */
+#define BATCH (TILE_PIXELS / 2)
 
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
 void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
@@ -48,15 +51,15 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    volatile __global float *v_opac,     /* [N] */
                    volatile __global float *v_features) /* [N, C] */
 {
-    __local float2 l_mean[TILE_PIXELS];
-    __local float4 l_cop[TILE_PIXELS];           /* (a, b, c, opac) */
-    __local float l_feat[TILE_PIXELS * C];
-    __local int l_gid[TILE_PIXELS];
-    __local float l_thr[TILE_PIXELS];
-    __local float4 l_box[TILE_PIXELS];
-    __local ushort l_list[N_SUB * TILE_PIXELS];
+    __local float2 l_mean[BATCH];
+    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
+    __local float l_feat[BATCH * C];
+    __local int l_gid[BATCH];
+    __local float l_thr[BATCH];
+    __local float4 l_box[BATCH];
+    __local uchar l_list[N_SUB * BATCH];
     __local int l_len[N_SUB];
-    __local float l_acc[TILE_PIXELS * NV];       /* [batch slot, NV] gradient accumulators */
+    __local float l_acc[BATCH * NV];             /* [batch slot, NV] gradient accumulators */
     __local int l_max_last;
 
     const int lx = get_local_id(0), ly = get_local_id(1);
@@ -87,11 +90,11 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     barrier(CLK_LOCAL_MEM_FENCE);
     if (last > 0) atomic_max(&l_max_last, last);
     barrier(CLK_LOCAL_MEM_FENCE);
-    const int n_batches = (l_max_last + TILE_PIXELS - 1) / TILE_PIXELS;   /* uniform */
+    const int n_batches = (l_max_last + BATCH - 1) / BATCH;   /* uniform */
 
     for (int b = n_batches - 1; b >= 0; b--) {
-        const int base = range.x + b * TILE_PIXELS;
-        const int count = min(TILE_PIXELS, range.y - base);
+        const int base = range.x + b * BATCH;
+        const int count = min(BATCH, range.y - base);
         if (lid < count) {
             const int g = sorted_values[base + lid];
             l_gid[lid] = g;
@@ -102,13 +105,14 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
             l_thr[lid] = thr;
             l_box[lid] = cull_box(l_mean[lid], l_cop[lid], thr);
         }
-        for (int k = 0; k < NV; k++) l_acc[lid * NV + k] = 0.0f;
+        if (lid < BATCH)
+            for (int k = 0; k < NV; k++) l_acc[lid * NV + k] = 0.0f;
         barrier(CLK_LOCAL_MEM_FENCE);
-        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len);
+        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len, BATCH);
         barrier(CLK_LOCAL_MEM_FENCE);
 
-        const int j_end = last - b * TILE_PIXELS;   /* one past this pixel's last contributor here */
-        __local const ushort *mine = l_list + my_sub * TILE_PIXELS;
+        const int j_end = last - b * BATCH;   /* one past this pixel's last contributor here */
+        __local const uchar *mine = l_list + my_sub * BATCH;
         for (int i = l_len[my_sub] - 1; i >= 0; i--) {
             const int j = mine[i];
             if (j >= j_end) continue;
