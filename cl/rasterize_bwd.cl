@@ -1,38 +1,55 @@
 /* Tile rasterizer, adjoint (docs/ARCHITECTURE.md "rasterize").  OpenCL C 1.2.
  *
  * Same work layout as rasterize.cl: one TILE x TILE work-group per tile, one pixel per work-item.
- * Each pixel walks its tile's list back to front, starting at its last contributor (last[p] - 1),
- * so batches are visited from the one holding the tile's largest `last` down to the first.
+ * The group walks the tile's list back to front, from the tile's largest `last` down to the first
+ * entry, in batches of BATCH Gaussians staged in local memory; a pixel takes part for the entries
+ * before its own last contributor (last[p] - 1 down to 0).
  *
  * Transmittance is recovered by division, as in 3DGS: starting from T = T_final, for each
  * contributor k (back to front) T_k = T_{k+1} / (1 - alpha_k); alpha_k <= ALPHA_MAX keeps the
- * divisor >= 1 - ALPHA_MAX.  The skip tests (power > 0, alpha < ALPHA_MIN) use the same arithmetic
- * as the forward kernel, so the same Gaussians are treated as contributors.
+ * divisor >= 1 - ALPHA_MAX.  The skip tests (power > 0, alpha < ALPHA_MIN) use the same functions
+ * as the forward kernel (included from rasterize.cl), so the same Gaussians count as contributors.
  *
  * With S_c = sum_{j behind k} f_jc alpha_j T_j (the colour composited behind k):
- *   d out_c / d alpha_k   = f_kc T_k - S_c / (1 - alpha_k)
+ *   d out_c / d alpha_k     = f_kc T_k - S_c / (1 - alpha_k)
  *   d alpha_pix / d alpha_k = T_final / (1 - alpha_k)            (alpha_pix = 1 - T_final)
- *   d out_c / d f_kc      = alpha_k T_k
+ *   d out_c / d f_kc        = alpha_k T_k
  * and alpha_k = opac_k G_k (G_k = exp(power)) unless the ALPHA_MAX clamp is active, where the
  * gradient to opac and power is zero.
  *
- * Like the forward pass, a pixel walks only the list of its SUB x SUB sub-block (rasterize.cl).
- *
- * Reduction: per batch, every Gaussian of the batch has a slot of local accumulators; the 256
- * pixels add into it with local CAS adds (atomic_add_local_f); after a barrier, work-item l adds
- * slot l to the global gradients with one atomic_add_global_f per value.  Order of the float adds
- * is therefore not fixed: results vary in the last bits from run to run.
+ * Reduction, without local atomics: the Gaussians of a batch are taken one at a time (a loop that
+ * is uniform over the group).  For Gaussian j, only the SUB x SUB sub-blocks that its cull box
+ * reaches (a 16-bit mask, see rasterize.cl) take part; Gaussians that reach none are skipped by
+ * the whole group.  (1) each pixel of a reached sub-block writes its NV gradient terms to its own
+ * slot of l_pix; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
+ * work-item per value sums the sub-block partials and adds the total to the global gradient with
+ * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
+ * groups' atomic adds land is not, so results can differ in the last bits between runs.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
 #include "common.h"
 #define RASTERIZE_HELPERS_ONLY
-#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, build_sub_lists */
+#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, SUB, N_SUB */
 
-#define NV (6 + C)   /* accumulated values per Gaussian: mean (2), conic (3), opac (1), features (C) */
-/* Gaussians per batch: half the forward's, so that the local arrays (about 19 KiB for C = 6) fit
- * the 32 KiB of the smallest devices we run on (Oclgrind). */
-#define BATCH (TILE_PIXELS / 2)
+#define NV (6 + C)   /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
+#define BATCH 128    /* Gaussians per batch; keeps local memory under 32 KiB (Oclgrind) for C <= 9 */
+
+/* Bit s set when the cull box (xmin, xmax, ymin, ymax) reaches a pixel centre of sub-block s of the
+ * tile with pixel origin (x0, y0). */
+inline int sub_block_mask(float4 bb, int x0, int y0) {
+    int cols = 0, rows = 0;
+    for (int s = 0; s < SUBS_PER_ROW; s++) {
+        const float bx0 = (float)(x0 + s * SUB) + 0.5f, bx1 = bx0 + (float)(SUB - 1);
+        const float by0 = (float)(y0 + s * SUB) + 0.5f, by1 = by0 + (float)(SUB - 1);
+        if (bb.x <= bx1 && bb.y >= bx0) cols |= 1 << s;
+        if (bb.z <= by1 && bb.w >= by0) rows |= 1 << s;
+    }
+    int mask = 0;
+    for (int r = 0; r < SUBS_PER_ROW; r++)
+        if (rows & (1 << r)) mask |= cols << (r * SUBS_PER_ROW);
+    return mask;
+}
 
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
 void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
@@ -56,10 +73,11 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local float l_feat[BATCH * C];
     __local int l_gid[BATCH];
     __local float l_thr[BATCH];
-    __local float4 l_box[BATCH];
-    __local uchar l_list[N_SUB * BATCH];
-    __local int l_len[N_SUB];
-    __local float l_acc[BATCH * NV];             /* [batch slot, NV] gradient accumulators */
+    __local int l_mask[BATCH];                   /* sub-blocks reached by each Gaussian */
+    __local float l_pix[NV * TILE_PIXELS];       /* [NV, pixel] gradient terms of one Gaussian */
+    __local float l_part[NV * N_SUB];            /* [NV, sub-block] partial sums */
+    __local uchar l_act[BATCH];                  /* batch entries with a non-empty mask, in order */
+    __local int l_n_act;
     __local int l_max_last;
 
     const int lx = get_local_id(0), ly = get_local_id(1);
@@ -90,75 +108,102 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     barrier(CLK_LOCAL_MEM_FENCE);
     if (last > 0) atomic_max(&l_max_last, last);
     barrier(CLK_LOCAL_MEM_FENCE);
-    const int n_batches = (l_max_last + BATCH - 1) / BATCH;   /* uniform */
+    const int max_last = l_max_last;                          /* uniform */
+    const int n_batches = (max_last + BATCH - 1) / BATCH;
 
     for (int b = n_batches - 1; b >= 0; b--) {
         const int base = range.x + b * BATCH;
-        const int count = min(BATCH, range.y - base);
+        const int count = min(BATCH, max_last - b * BATCH);  /* entries of this batch to walk */
         if (lid < count) {
             const int g = sorted_values[base + lid];
             l_gid[lid] = g;
-            l_mean[lid] = means2d[g];
-            l_cop[lid] = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
+            const float2 mean = means2d[g];
+            const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
+            l_mean[lid] = mean;
+            l_cop[lid] = cop;
             for (int c = 0; c < C; c++) l_feat[lid * C + c] = features[g * C + c];
-            const float thr = skip_threshold(l_cop[lid].w);
+            const float thr = skip_threshold(cop.w);
             l_thr[lid] = thr;
-            l_box[lid] = cull_box(l_mean[lid], l_cop[lid], thr);
+            l_mask[lid] = sub_block_mask(cull_box(mean, cop, thr), tx * TILE, ty * TILE);
         }
-        if (lid < BATCH)
-            for (int k = 0; k < NV; k++) l_acc[lid * NV + k] = 0.0f;
         barrier(CLK_LOCAL_MEM_FENCE);
-        build_sub_lists(lid, count, tx * TILE, ty * TILE, l_box, l_list, l_len, BATCH);
+        if (lid == 0) {   /* Gaussians no pixel of the tile can use are left out */
+            int n = 0;
+            for (int j = 0; j < count; j++)
+                if (l_mask[j] != 0) l_act[n++] = (uchar)j;
+            l_n_act = n;
+        }
         barrier(CLK_LOCAL_MEM_FENCE);
+        const int n_act = l_n_act;            /* uniform */
 
-        const int j_end = last - b * BATCH;   /* one past this pixel's last contributor here */
-        __local const uchar *mine = l_list + my_sub * BATCH;
-        for (int i = l_len[my_sub] - 1; i >= 0; i--) {
-            const int j = mine[i];
-            if (j >= j_end) continue;
-            const float4 cop = l_cop[j];
-            const float2 d = l_mean[j] - (float2)(px, py);
-            const float power = gauss_power(cop, d);
-            if (power > 0.0f || power < l_thr[j]) continue;
-            const float G = exp_nonpos(power);
-            const float raw = cop.w * G;
-            const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
-            if (alpha < ALPHA_MIN) continue;
-            const float one_m = 1.0f - alpha;
-            T = T / one_m;                           /* transmittance in front of Gaussian j */
-            const float w = alpha * T;
-            float v_al = va * T_fin / one_m;         /* d L / d alpha_j */
-            volatile __local float *acc = l_acc + j * NV;
-            for (int c = 0; c < C; c++) {
-                const float f = l_feat[j * C + c];
-                v_al += vo[c] * (f * T - S[c] / one_m);
-                S[c] += f * w;
-                atomic_add_local_f(acc + 6 + c, vo[c] * w);
+        const int j_end = last - b * BATCH;   /* this pixel takes entries j < j_end */
+        for (int i = n_act - 1; i >= 0; i--) {
+            const int j = l_act[i];
+            const int mask = l_mask[j];
+            if ((mask >> my_sub) & 1) {
+                float gr[NV];
+                for (int k = 0; k < NV; k++) gr[k] = 0.0f;
+                const float4 cop = l_cop[j];
+                const float2 d = l_mean[j] - (float2)(px, py);
+                const float power = gauss_power(cop, d);
+                if (j < j_end && power <= 0.0f && power >= l_thr[j]) {
+                    const float G = exp_nonpos(power);
+                    const float raw = cop.w * G;
+                    const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
+                    if (alpha >= ALPHA_MIN) {
+                        const float one_m = 1.0f - alpha;
+                        T = T / one_m;                   /* transmittance in front of Gaussian j */
+                        const float w = alpha * T;
+                        float v_al = va * T_fin / one_m; /* d L / d alpha_j */
+                        for (int c = 0; c < C; c++) {
+                            const float f = l_feat[j * C + c];
+                            v_al += vo[c] * (f * T - S[c] / one_m);
+                            S[c] += f * w;
+                            gr[6 + c] = vo[c] * w;
+                        }
+                        if (raw <= ALPHA_MAX) {          /* the clamp blocks the gradient */
+                            const float v_power = v_al * alpha;
+                            gr[0] = -v_power * (cop.x * d.x + cop.y * d.y);
+                            gr[1] = -v_power * (cop.z * d.y + cop.y * d.x);
+                            gr[2] = -0.5f * v_power * d.x * d.x;
+                            gr[3] = -v_power * d.x * d.y;
+                            gr[4] = -0.5f * v_power * d.y * d.y;
+                            gr[5] = v_al * G;
+                        }
+                    }
+                }
+                for (int k = 0; k < NV; k++) l_pix[k * TILE_PIXELS + lid] = gr[k];
             }
-            if (raw <= ALPHA_MAX) {                  /* the clamp blocks the gradient */
-                const float v_power = v_al * alpha;
-                atomic_add_local_f(acc + 0, -v_power * (cop.x * d.x + cop.y * d.y));
-                atomic_add_local_f(acc + 1, -v_power * (cop.z * d.y + cop.y * d.x));
-                atomic_add_local_f(acc + 2, -0.5f * v_power * d.x * d.x);
-                atomic_add_local_f(acc + 3, -v_power * d.x * d.y);
-                atomic_add_local_f(acc + 4, -0.5f * v_power * d.y * d.y);
-                atomic_add_local_f(acc + 5, v_al * G);
+            barrier(CLK_LOCAL_MEM_FENCE);
+            /* (2) sub-block partial sums; pixel (u, v) of sub-block s is at slot
+             * (sy * SUB + v) * TILE + sx * SUB + u. */
+            for (int t = lid; t < NV * N_SUB; t += TILE_PIXELS) {
+                const int k = t / N_SUB, s = t % N_SUB;
+                float sum = 0.0f;
+                if ((mask >> s) & 1) {
+                    const int o = (s / SUBS_PER_ROW) * SUB * TILE + (s % SUBS_PER_ROW) * SUB;
+                    for (int v = 0; v < SUB; v++)
+                        for (int u = 0; u < SUB; u++) sum += l_pix[k * TILE_PIXELS + o + v * TILE + u];
+                }
+                l_part[t] = sum;
             }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            /* (3) one global add per value */
+            if (lid < NV) {
+                float sum = 0.0f;
+                for (int s = 0; s < N_SUB; s++) sum += l_part[lid * N_SUB + s];
+                if (sum != 0.0f) {
+                    const int g = l_gid[j];
+                    volatile __global float *dst =
+                        lid < 2 ? v_means2d + 2 * g + lid :
+                        lid < 5 ? v_conic + 3 * g + (lid - 2) :
+                        lid == 5 ? v_opac + g : v_features + g * C + (lid - 6);
+                    atomic_add_global_f(dst, sum);
+                }
+            }
+            /* No barrier needed here: the next iteration's step (1) rewrites l_pix, which step (3)
+             * does not read; l_part is rewritten only after the next (1)->(2) barrier. */
         }
-        barrier(CLK_LOCAL_MEM_FENCE);
-
-        if (lid < count) {
-            const int g = l_gid[lid];
-            __local const float *acc = l_acc + lid * NV;
-            /* slots are read with plain loads: every CAS on them happened before the barrier */
-            if (acc[0] != 0.0f) atomic_add_global_f(v_means2d + 2 * g, acc[0]);
-            if (acc[1] != 0.0f) atomic_add_global_f(v_means2d + 2 * g + 1, acc[1]);
-            for (int k = 0; k < 3; k++)
-                if (acc[2 + k] != 0.0f) atomic_add_global_f(v_conic + 3 * g + k, acc[2 + k]);
-            if (acc[5] != 0.0f) atomic_add_global_f(v_opac + g, acc[5]);
-            for (int c = 0; c < C; c++)
-                if (acc[6 + c] != 0.0f) atomic_add_global_f(v_features + g * C + c, acc[6 + c]);
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the local arrays */
+        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays */
     }
 }
