@@ -27,3 +27,9 @@ __kernel void atomic_sum_f32(__global const float *x, const int n, volatile __gl
     }
     if (l == 0) atomic_add_global_f(out, scratch[0]);
 }
+
+/* flag[0] |= 1 if any of x[0..n) is NaN or +-Inf (the training step's divergence guard). */
+__kernel void any_nonfinite_f32(__global const float *x, const int n, volatile __global int *flag) {
+    int i = get_global_id(0);
+    if (i < n && !isfinite(x[i])) atomic_or(flag, 1);
+}

@@ -72,7 +72,7 @@ def main(argv=None):
             grads = render_backward(rt, tr.params, out, v, densify_stats=tr.stats)
             rt.queue.finish()
             t3 = time.perf_counter()
-            tr.adam.step(grads, tr.group_lrs(0))
+            tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0))
             rt.queue.finish()
             t4 = time.perf_counter()
             if i >= args.warmup:
