@@ -20,8 +20,9 @@
  * Reduction, without local atomics: the Gaussians of a batch are taken one at a time (a loop that
  * is uniform over the group).  For Gaussian j, only the SUB x SUB sub-blocks that its cull box
  * reaches (a 16-bit mask, see rasterize.cl) take part; Gaussians that reach none are skipped by
- * the whole group.  (1) each pixel of a reached sub-block writes its NV gradient terms to its own
- * slot of l_pix; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
+ * the whole group.  (1) each pixel of a reached sub-block that the Gaussian contributes to writes
+ * its NV gradient terms to its own slot of l_pix, and every pixel of a reached sub-block sets its
+ * l_used flag; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
  * work-item per value sums the sub-block partials and adds the total to the global gradient with
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
@@ -76,6 +77,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local int l_mask[BATCH];                   /* sub-blocks reached by each Gaussian */
     __local float l_pix[NV * TILE_PIXELS];       /* [NV, pixel] gradient terms of one Gaussian */
     __local float l_part[NV * N_SUB];            /* [NV, sub-block] partial sums */
+    __local uchar l_used[TILE_PIXELS];           /* pixel contributed terms to l_pix */
     __local uchar l_act[BATCH];                  /* batch entries with a non-empty mask, in order */
     __local int l_n_act;
     __local int l_max_last;
@@ -141,8 +143,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
             const int j = l_act[i];
             const int mask = l_mask[j];
             if ((mask >> my_sub) & 1) {
-                float gr[NV];
-                for (int k = 0; k < NV; k++) gr[k] = 0.0f;
+                bool used = false;
                 const float4 cop = l_cop[j];
                 const float2 d = l_mean[j] - (float2)(px, py);
                 const float power = gauss_power(cop, d);
@@ -151,16 +152,18 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                     const float raw = cop.w * G;
                     const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
                     if (alpha >= ALPHA_MIN) {
-                        const float one_m = 1.0f - alpha;
-                        T = T / one_m;                   /* transmittance in front of Gaussian j */
+                        used = true;
+                        const float inv_om = 1.0f / (1.0f - alpha);
+                        T = T * inv_om;                  /* transmittance in front of Gaussian j */
                         const float w = alpha * T;
-                        float v_al = va * T_fin / one_m; /* d L / d alpha_j */
+                        float v_al = va * T_fin * inv_om; /* d L / d alpha_j */
                         for (int c = 0; c < C; c++) {
                             const float f = l_feat[j * C + c];
-                            v_al += vo[c] * (f * T - S[c] / one_m);
+                            v_al += vo[c] * (f * T - S[c] * inv_om);
                             S[c] += f * w;
-                            gr[6 + c] = vo[c] * w;
+                            l_pix[(6 + c) * TILE_PIXELS + lid] = vo[c] * w;
                         }
+                        float gr[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
                         if (raw <= ALPHA_MAX) {          /* the clamp blocks the gradient */
                             const float v_power = v_al * alpha;
                             gr[0] = -v_power * (cop.x * d.x + cop.y * d.y);
@@ -170,9 +173,10 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                             gr[4] = -0.5f * v_power * d.y * d.y;
                             gr[5] = v_al * G;
                         }
+                        for (int k = 0; k < 6; k++) l_pix[k * TILE_PIXELS + lid] = gr[k];
                     }
                 }
-                for (int k = 0; k < NV; k++) l_pix[k * TILE_PIXELS + lid] = gr[k];
+                l_used[lid] = used;   /* the slots of a pixel that did not contribute are stale */
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             /* (2) sub-block partial sums; pixel (u, v) of sub-block s is at slot
@@ -183,7 +187,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 if ((mask >> s) & 1) {
                     const int o = (s / SUBS_PER_ROW) * SUB * TILE + (s % SUBS_PER_ROW) * SUB;
                     for (int v = 0; v < SUB; v++)
-                        for (int u = 0; u < SUB; u++) sum += l_pix[k * TILE_PIXELS + o + v * TILE + u];
+                        for (int u = 0; u < SUB; u++)
+                            if (l_used[o + v * TILE + u]) sum += l_pix[k * TILE_PIXELS + o + v * TILE + u];
                 }
                 l_part[t] = sum;
             }
