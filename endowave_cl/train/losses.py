@@ -35,26 +35,32 @@ SSIM_C1 = 0.01 ** 2    # (K1 L)^2 with K1 = 0.01, data range L = 1
 SSIM_C2 = 0.03 ** 2    # (K2 L)^2 with K2 = 0.03
 
 
-def _gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
+def _gaussian_window_1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = g / g.sum()
-    return torch.outer(g, g)  # [size, size]
+    return g / g.sum()  # [size]; the 2D window is its outer product
 
 
 def ssim_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Per-pixel, per-channel SSIM of [H, W, C] images (3DGS's definition); returns [H, W, C]."""
+    """Per-pixel, per-channel SSIM of [H, W, C] images (3DGS's definition); returns [H, W, C].
+
+    The 11 x 11 Gaussian window is separable, so the five local means are computed in one batched
+    pair of 1D convolutions (rows, then columns); with zero padding this equals the 2D convolution.
+    """
     C = pred.shape[-1]
     x = pred.permute(2, 0, 1).unsqueeze(0)  # [1, C, H, W]
     y = gt.permute(2, 0, 1).unsqueeze(0)
-    w = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA, pred.dtype, pred.device)
-    w = w.expand(C, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+    g = _gaussian_window_1d(SSIM_WINDOW, SSIM_SIGMA, pred.dtype, pred.device)
     pad = SSIM_WINDOW // 2
-    blur = lambda t: F.conv2d(t, w, padding=pad, groups=C)
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x * mu_x
-    syy = blur(y * y) - mu_y * mu_y
-    sxy = blur(x * y) - mu_x * mu_y
+    stack = torch.cat([x, y, x * x, y * y, x * y], 1)  # [1, 5C, H, W]
+    n = stack.shape[1]
+    wr = g.view(1, 1, 1, -1).expand(n, 1, 1, SSIM_WINDOW)
+    wc = g.view(1, 1, -1, 1).expand(n, 1, SSIM_WINDOW, 1)
+    blurred = F.conv2d(F.conv2d(stack, wr, padding=(0, pad), groups=n), wc, padding=(pad, 0), groups=n)
+    mu_x, mu_y, exx, eyy, exy = blurred.split(C, dim=1)
+    sxx = exx - mu_x * mu_x
+    syy = eyy - mu_y * mu_y
+    sxy = exy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
     return (num / den)[0].permute(1, 2, 0)
