@@ -7,14 +7,20 @@
  * loading batches once every pixel has stopped.  Work-items outside the image start "done": they
  * help loading but write nothing.  Every work-item reaches every barrier.
  *
+ * Culling (exact: it drops only pairs the compositing rules would skip): per batch, each 4 x 4
+ * sub-block of the tile gets the ordered list of the batch's Gaussians that can reach one of its
+ * pixels (cull_box), and a pixel walks only its sub-block's list; within it, a pair whose power
+ * is below the Gaussian's skip threshold is dropped before exp.  On PoCL this cuts the pairs
+ * walked about 4x against walking the whole tile list.
+ *
  * Build options (set by endowave_cl/ops/rasterize.py from the constants of
  * endowave_cl/reference/rasterize.py): -DC=<channels>, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP.
  * Pixel centre convention: pixel (i, j) has centre (i + 0.5, j + 0.5).
  */
 #include "common.h"
 
-/* Shared with rasterize_bwd.cl, which includes this file with RASTERIZE_HELPERS_ONLY defined. */
-
+/* The helpers below are shared with rasterize_bwd.cl, which includes this file with
+ * RASTERIZE_HELPERS_ONLY defined, so both passes make the same skip decisions. */
 
 /* Exponent of the 2D Gaussian at offset d = mean - pixel; cop = (a, b, c, opac), the conic
  * (inverse 2D covariance) entries inv00, inv01, inv11. */
@@ -26,7 +32,7 @@ inline float gauss_power(float4 cop, float2 d) {
  * Cody-Waite reduction x = k ln2 + r, |r| <= ln2 / 2, then a degree-7 Taylor polynomial of e^r
  * (truncation < 1e-8 relative) and the scaling by 2^k in the exponent bits.  About 1 ulp from
  * the correctly rounded value; x below EXP_FLOOR gives ~e^EXP_FLOOR (alpha far below ALPHA_MIN).
- * Defined identically in rasterize_bwd.cl so both passes make the same skip decisions. */
+ * (PoCL compiles builtin math such as exp and fmin to out-of-line calls: several times slower.) */
 #define EXP_FLOOR (-80.0f)
 #define LN2_HI 0.693145751953125f           /* ln 2 split so that k * LN2_HI is exact */
 #define LN2_LO 1.428606765330187045e-06f

@@ -27,6 +27,28 @@ def _options(C: int):
             f"-DALPHA_MIN={_f32_literal(ALPHA_MIN)}", f"-DT_STOP={_f32_literal(T_STOP)}"]
 
 
+BWD_BATCH = 128   # Gaussians per local-memory batch of rasterize_bwd.cl (BATCH there)
+
+
+def fwd_local_bytes(C: int) -> int:
+    """Local memory of the rasterize kernel (mirror of its __local arrays)."""
+    per_gaussian = 8 + 16 + 4 * C + 4 + 16 + 16      # mean, cop, feat, thr, box, 16 list slots
+    return TILE * TILE * per_gaussian + 16 * 4 + 8
+
+
+def bwd_local_bytes(C: int) -> int:
+    """Local memory of the rasterize_bwd kernel (mirror of its __local arrays)."""
+    nv = 6 + C
+    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 4 + 1    # mean, cop, feat, gid, thr, mask, act
+    return BWD_BATCH * per_gaussian + nv * (TILE * TILE + 16) * 4 + TILE * TILE + 8
+
+
+def _check_local(rt, need: int, what: str, C: int) -> None:
+    if need > rt.local_mem_size:
+        raise ValueError(f"{what} with C={C} feature channels needs {need} bytes of local memory; "
+                         f"{rt.name} has {rt.local_mem_size}: use fewer channels")
+
+
 @dataclass
 class RasterOut:
     out: "object"      # [H, W, C] float32
@@ -79,6 +101,7 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
                     cla.empty(q, (height, width), np.float32), cla.empty(q, (height, width), np.int32))
     if width == 0 or height == 0:
         return res
+    _check_local(rt, fwd_local_bytes(C), "rasterize", C)
     tiles_x, _, gsize, lsize = _grid(width, height)
     k = rt.kernel("rasterize.cl", "rasterize", _options(C))
     k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
@@ -101,6 +124,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
              "v_opac": cla.zeros(q, (N,), np.float32), "v_features": cla.zeros(q, (N, C), np.float32)}
     if N == 0 or width == 0 or height == 0:
         return grads
+    _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
     tiles_x, _, gsize, lsize = _grid(width, height)
     k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", _options(C))
     k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),

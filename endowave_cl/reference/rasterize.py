@@ -76,18 +76,14 @@ def _pixel_grid(tx, ty, width, height):
 
 
 def _assemble(tiles, width, height, C, dtype):
-    """Stitch per-tile results into images (out [H,W,C], alpha, T_final, last)."""
-    out = torch.zeros(height * width, C, dtype=dtype)
-    T = torch.ones(height * width, dtype=dtype)
+    """Stitch per-tile results into images (out [H,W,C], alpha, T_final, last), one scatter each."""
+    flat = torch.cat([iy * width + ix for (ix, iy, _, _, _) in tiles])          # [H*W]
+    out = torch.zeros(height * width, C, dtype=dtype).index_put((flat,), torch.cat([t[2] for t in tiles]))
+    T = torch.ones(height * width, dtype=dtype).index_put((flat,), torch.cat([t[3] for t in tiles]))
     last = torch.zeros(height * width, dtype=torch.int32)
-    for (ix, iy, o, t, l) in tiles:
-        flat = iy * width + ix
-        out = out.index_put((flat,), o)
-        T = T.index_put((flat,), t)
-        last[flat] = l.to(torch.int32)
-    out = out.reshape(height, width, C)
+    last[flat] = torch.cat([t[4] for t in tiles]).to(torch.int32)
     T = T.reshape(height, width)
-    return out, 1.0 - T, T, last.reshape(height, width)
+    return out.reshape(height, width, C), 1.0 - T, T, last.reshape(height, width)
 
 
 def rasterize_ref(means2d, conic, opac, features, sorted_values, tile_ranges, width: int, height: int
