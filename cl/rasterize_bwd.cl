@@ -20,9 +20,8 @@
  * Reduction, without local atomics: the Gaussians of a batch are taken one at a time (a loop that
  * is uniform over the group).  For Gaussian j, only the SUB x SUB sub-blocks that its cull box
  * reaches (a 16-bit mask, see rasterize.cl) take part; Gaussians that reach none are skipped by
- * the whole group.  (1) each pixel of a reached sub-block that the Gaussian contributes to writes
- * its NV gradient terms to its own slot of l_pix, and every pixel of a reached sub-block sets its
- * l_used flag; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
+ * the whole group.  (1) each pixel of a reached sub-block writes its NV gradient terms (zeros
+ * where the Gaussian is skipped) to its own slot of l_pix; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
  * work-item per value sums the sub-block partials and adds the total to the global gradient with
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
@@ -32,6 +31,10 @@
 #include "common.h"
 #define RASTERIZE_HELPERS_ONLY
 #include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, SUB, N_SUB */
+
+#if SUB != 4
+#error "the sub-block sums below read rows of a sub-block with vload4"
+#endif
 
 #define NV (6 + C)   /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
 #define BATCH 128    /* Gaussians per batch; keeps local memory under 32 KiB (Oclgrind) for C <= 9 */
@@ -77,7 +80,6 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local int l_mask[BATCH];                   /* sub-blocks reached by each Gaussian */
     __local float l_pix[NV * TILE_PIXELS];       /* [NV, pixel] gradient terms of one Gaussian */
     __local float l_part[NV * N_SUB];            /* [NV, sub-block] partial sums */
-    __local uchar l_used[TILE_PIXELS];           /* pixel contributed terms to l_pix */
     __local uchar l_act[BATCH];                  /* batch entries with a non-empty mask, in order */
     __local int l_n_act;
     __local int l_max_last;
@@ -176,7 +178,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                         for (int k = 0; k < 6; k++) l_pix[k * TILE_PIXELS + lid] = gr[k];
                     }
                 }
-                l_used[lid] = used;   /* the slots of a pixel that did not contribute are stale */
+                if (!used)   /* a reached pixel that the Gaussian skips adds zeros */
+                    for (int k = 0; k < NV; k++) l_pix[k * TILE_PIXELS + lid] = 0.0f;
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             /* (2) sub-block partial sums; pixel (u, v) of sub-block s is at slot
@@ -186,9 +189,10 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 float sum = 0.0f;
                 if ((mask >> s) & 1) {
                     const int o = (s / SUBS_PER_ROW) * SUB * TILE + (s % SUBS_PER_ROW) * SUB;
-                    for (int v = 0; v < SUB; v++)
-                        for (int u = 0; u < SUB; u++)
-                            if (l_used[o + v * TILE + u]) sum += l_pix[k * TILE_PIXELS + o + v * TILE + u];
+                    __local const float *src = l_pix + k * TILE_PIXELS + o;
+                    float4 s4 = vload4(0, src);
+                    for (int v = 1; v < SUB; v++) s4 += vload4(0, src + v * TILE);
+                    sum = (s4.x + s4.y) + (s4.z + s4.w);
                 }
                 l_part[t] = sum;
             }
