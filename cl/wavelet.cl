@@ -6,7 +6,8 @@
  * Axis-generic layout: a contiguous array is viewed as [outer, n, inner] and the operation runs
  * along the middle axis.  For a channel-last image [H, W, C]: rows (along W) are
  * outer = H, n = W, inner = C; columns (along H) are outer = 1, n = H, inner = W * C.
- * One work-item per output element, 1-D global range, index = (o * n + x) * inner + k.
+ * One work-item per output element, 2-D global range: dimension 0 = x * inner + k (contiguous in
+ * memory), dimension 1 = o; the element's flat index is o * n * inner + x * inner + k.
  */
 #include "common.h"
 
@@ -24,12 +25,12 @@ inline int reflect_idx(int m, int n) {
 __kernel void conv_axis(__global const float *in, __global float *out,
                         __global const float *f, const int flen,
                         const int outer, const int n, const int inner) {
-    const int gid = get_global_id(0);
-    const int total = outer * n * inner;
-    if (gid >= total) return;
-    const int k = gid % inner;
-    const int x = (gid / inner) % n;
-    const int o = gid / (inner * n);
+    const int xi = get_global_id(0);            /* x * inner + k */
+    const int o = get_global_id(1);
+    if (xi >= n * inner || o >= outer) return;
+    const int k = xi % inner;
+    const int x = xi / inner;
+    const size_t gid = (size_t)o * n * inner + xi;
     const int R = flen / 2;
     __global const float *line = in + (size_t)o * n * inner + k;
     float acc = 0.0f;
@@ -50,12 +51,12 @@ __kernel void conv_axis(__global const float *in, __global float *out,
 __kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
                           __global const float *f, const int flen,
                           const int outer, const int n, const int inner, const int accumulate) {
-    const int gid = get_global_id(0);
-    const int total = outer * n * inner;
-    if (gid >= total) return;
-    const int k = gid % inner;
-    const int y = (gid / inner) % n;
-    const int o = gid / (inner * n);
+    const int xi = get_global_id(0);            /* y * inner + k */
+    const int o = get_global_id(1);
+    if (xi >= n * inner || o >= outer) return;
+    const int k = xi % inner;
+    const int y = xi / inner;
+    const size_t gid = (size_t)o * n * inner + xi;
     const int R = flen / 2;
     __global const float *line = v_out + (size_t)o * n * inner + k;
     float acc = 0.0f;
@@ -96,12 +97,12 @@ __kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
 __kernel void resample_axis(__global const float *in, __global float *out,
                             const int p, const int q,
                             const int outer, const int n_in, const int n_out, const int inner) {
-    const int gid = get_global_id(0);
-    const int total = outer * n_out * inner;
-    if (gid >= total) return;
-    const int k = gid % inner;
-    const int j = (gid / inner) % n_out;
-    const int o = gid / (inner * n_out);
+    const int xi = get_global_id(0);            /* j * inner + k */
+    const int o = get_global_id(1);
+    if (xi >= n_out * inner || o >= outer) return;
+    const int k = xi % inner;
+    const int j = xi / inner;
+    const size_t gid = (size_t)o * n_out * inner + xi;
     const int i0 = (j * p) / q;
     const int r = (j * p) - i0 * q;
     __global const float *line = in + (size_t)o * n_in * inner + k;
@@ -119,12 +120,12 @@ __kernel void v_resample_axis(__global const float *v_out, __global float *v_in,
                               const int p, const int q,
                               const int outer, const int n_in, const int n_out, const int inner,
                               const int accumulate) {
-    const int gid = get_global_id(0);
-    const int total = outer * n_in * inner;
-    if (gid >= total) return;
-    const int k = gid % inner;
-    const int i = (gid / inner) % n_in;
-    const int o = gid / (inner * n_in);
+    const int xi = get_global_id(0);            /* i * inner + k */
+    const int o = get_global_id(1);
+    if (xi >= n_in * inner || o >= outer) return;
+    const int k = xi % inner;
+    const int i = xi / inner;
+    const size_t gid = (size_t)o * n_in * inner + xi;
     const int num_lo = (i - 1) * q + 1;
     int jlo = num_lo > 0 ? (num_lo + p - 1) / p : 0;
     int jhi = ((i + 1) * q - 1) / p;

@@ -58,7 +58,13 @@ def _dims(shape, axis: int) -> Tuple[int, int, int]:
 
 
 def _launch(rt, kernel, total: int, *args) -> None:
+    """1-D range over total elements (element-wise kernels)."""
     kernel(rt.queue, (round_up(max(int(total), 1), GROUP),), None, *args)
+
+
+def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args) -> None:
+    """2-D range of the axis kernels: (n * inner rounded up, outer)."""
+    kernel(rt.queue, (round_up(max(int(n) * int(inner), 1), GROUP), max(int(outer), 1)), None, *args)
 
 
 def _filter_array(rt, f) -> Tuple[cla.Array, int]:
@@ -94,7 +100,7 @@ def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None) -
     farr, flen = _filter_array(rt, f)
     outer, n, inner = _dims(x.shape, axis)
     out = _empty(rt, x.shape) if out is None else out
-    _launch(rt, rt.kernel(KFILE, "conv_axis"), x.size, x.data, out.data, farr.data,
+    _launch_axis(rt, rt.kernel(KFILE, "conv_axis"), n, inner, outer, x.data, out.data, farr.data,
             np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner))
     return out
 
@@ -109,7 +115,7 @@ def v_conv_axis(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] = N
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, v_out.shape)
-    _launch(rt, rt.kernel(KFILE, "v_conv_axis"), v_out.size, v_out.data, out.data, farr.data,
+    _launch_axis(rt, rt.kernel(KFILE, "v_conv_axis"), n, inner, outer, v_out.data, out.data, farr.data,
             np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)))
     return out
 
@@ -133,7 +139,7 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     shape = list(x.shape)
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
-    _launch(rt, rt.kernel(KFILE, "resample_axis"), out.size, x.data, out.data, np.int32(p), np.int32(q),
+    _launch_axis(rt, rt.kernel(KFILE, "resample_axis"), n_out, inner, outer, x.data, out.data, np.int32(p), np.int32(q),
             np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner))
     return out
 
@@ -152,7 +158,7 @@ def v_resample_axis(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
-    _launch(rt, rt.kernel(KFILE, "v_resample_axis"), out.size, v_out.data, out.data, np.int32(p),
+    _launch_axis(rt, rt.kernel(KFILE, "v_resample_axis"), n_in, inner, outer, v_out.data, out.data, np.int32(p),
             np.int32(q), np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
             np.int32(bool(accumulate)))
     return out
