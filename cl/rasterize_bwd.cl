@@ -26,6 +26,10 @@
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
  *
+ * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for sorted entry m in
+ * v_entry[m] instead (entries are unique to a tile, so no atomics), and rasterize_bwd_gather sums
+ * each Gaussian's entries in tile order: bit-identical results from run to run.
+ *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
 #include "common.h"
@@ -34,6 +38,10 @@
 
 #if SUB != 4
 #error "the sub-block sums below read rows of a sub-block with vload4"
+#endif
+
+#ifndef DETERMINISTIC
+#define DETERMINISTIC 0
 #endif
 
 #define NV (6 + C)   /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
@@ -70,7 +78,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
                    volatile __global float *v_conic,    /* [N, 3] */
                    volatile __global float *v_opac,     /* [N] */
-                   volatile __global float *v_features) /* [N, C] */
+                   volatile __global float *v_features, /* [N, C] */
+                   __global float *v_entry)          /* [M, NV] per-entry terms (DETERMINISTIC only) */
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -201,6 +210,9 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
             if (lid < NV) {
                 float sum = 0.0f;
                 for (int s = 0; s < N_SUB; s++) sum += l_part[lid * N_SUB + s];
+#if DETERMINISTIC
+                v_entry[(base + j) * NV + lid] = sum;   /* entry base + j is this group's alone */
+#else
                 if (sum != 0.0f) {
                     const int g = l_gid[j];
                     volatile __global float *dst =
@@ -209,10 +221,54 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                         lid == 5 ? v_opac + g : v_features + g * C + (lid - 6);
                     atomic_add_global_f(dst, sum);
                 }
+#endif
             }
             /* No barrier needed here: the next iteration's step (1) rewrites l_pix, which step (3)
              * does not read; l_part is rewritten only after the next (1)->(2) barrier. */
         }
         barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays */
     }
+}
+
+/* Deterministic mode, second pass: one work-item per Gaussian g sums its entries of v_entry in
+ * increasing tile order (the tiles of its rect, row-major) and writes its gradients.  The entry of g
+ * in a tile's range is found by binary search on the sort key (depth bits, then Gaussian id: the
+ * stable sort keeps ids increasing among equal depths); a tile without g (culled) adds nothing.
+ * v_entry is zero where the backward pass had nothing for an entry. */
+__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] */
+                                   __global const int *sorted_values,/* [M] */
+                                   __global const int2 *tile_ranges, /* [n_tiles] */
+                                   __global const int4 *rect,        /* [N] (x0, y0, x1, y1) tiles */
+                                   __global const float *depth,      /* [N] */
+                                   const int n, const int tiles_x,
+                                   __global float *v_means2d,        /* [N, 2] */
+                                   __global float *v_conic,          /* [N, 3] */
+                                   __global float *v_opac,           /* [N] */
+                                   __global float *v_features)       /* [N, C] */
+{
+    const int g = get_global_id(0);
+    if (g >= n) return;
+    float sum[NV];
+    for (int k = 0; k < NV; k++) sum[k] = 0.0f;
+    const int4 r = rect[g];
+    const uint dg = as_uint(depth[g]);
+    for (int ty = r.y; ty < r.w; ty++) {
+        for (int tx = r.x; tx < r.z; tx++) {
+            const int2 range = tile_ranges[ty * tiles_x + tx];
+            int lo = range.x, hi = range.y;
+            while (lo < hi) {   /* first entry whose key is not below g's */
+                const int mid = lo + (hi - lo) / 2;
+                const int h = sorted_values[mid];
+                const uint dh = as_uint(depth[h]);
+                if (dh < dg || (dh == dg && h < g)) lo = mid + 1; else hi = mid;
+            }
+            if (lo < range.y && sorted_values[lo] == g)
+                for (int k = 0; k < NV; k++) sum[k] += v_entry[lo * NV + k];
+        }
+    }
+    v_means2d[2 * g] = sum[0];
+    v_means2d[2 * g + 1] = sum[1];
+    for (int k = 0; k < 3; k++) v_conic[3 * g + k] = sum[2 + k];
+    v_opac[g] = sum[5];
+    for (int c = 0; c < C; c++) v_features[g * C + c] = sum[6 + c];
 }

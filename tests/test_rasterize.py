@@ -162,13 +162,17 @@ def test_forward_tiny_oclgrind(rt):
 
 
 # ------------------------------------------------------------------------------------------ adjoint
-def run_bwd(rt, sc, seed=0):
+def run_bwd(rt, sc, seed=0, deterministic=False):
     dev, r = run_fwd(rt, sc)
     w, h, C = sc["width"], sc["height"], sc["features"].shape[1]
     rng = np.random.default_rng(100 + seed)
     v_out = rng.standard_normal((h, w, C)).astype(np.float32)
     v_alpha = rng.standard_normal((h, w)).astype(np.float32)
-    g = rasterize_bwd(rt, *dev, w, h, r, cla.to_device(rt.queue, v_out), cla.to_device(rt.queue, v_alpha))
+    det = None
+    if deterministic:
+        det = (cla.to_device(rt.queue, sc["rect"]), cla.to_device(rt.queue, sc["depth"]))
+    g = rasterize_bwd(rt, *dev, w, h, r, cla.to_device(rt.queue, v_out), cla.to_device(rt.queue, v_alpha),
+                      deterministic=det)
     ref = rasterize_bwd_ref(sc["means2d"], sc["conic"], sc["opac"], sc["features"], sc["sorted_values"],
                             sc["tile_ranges"], w, h, v_out, v_alpha)
     return {k: v.get() for k, v in g.items()}, ref
@@ -262,6 +266,52 @@ def test_adjoint_saturated_tiny_oclgrind(rt):
     sc = make_scene(13, 14, 20, 18, 2, (2.0, 6.0), (0.9, 1.0))
     got, ref = run_bwd(rt, sc)
     check_bwd(got, ref)
+
+
+@pytest.mark.parametrize("case", [BWD_CASES[0], BWD_CASES[4]])
+def test_adjoint_deterministic_mode(rt, case):
+    """Bit-identical gradients over runs, equal to the reference like the default mode."""
+    seed, n, w, h, C, sigma, op = case
+    sc = make_scene(seed, n, w, h, C, sigma, op)
+    # equal depths too, so the gather's tie-break on the Gaussian id is exercised
+    sc["depth"][: n // 2] = 1.5
+    sc = with_sorted_list(sc)
+    runs = [run_bwd(rt, sc, seed, deterministic=True) for _ in range(3)]
+    for got, _ in runs[1:]:
+        for k in got:
+            assert np.array_equal(got[k], runs[0][0][k]), k
+    check_bwd(runs[0][0], runs[0][1])
+    default, _ = run_bwd(rt, sc, seed)
+    check_bwd(runs[0][0], default, rtol=1e-4)
+
+
+def test_adjoint_deterministic_one_gaussian_many_tiles(rt):
+    w, h = 70, 52
+    sc = make_scene(0, 2, w, h, 3)
+    sc["means2d"][:] = [[35.2, 26.7], [20.0, 30.0]]
+    sc["conic"][:] = [[1 / 400.0, 1 / 2000.0, 1 / 300.0], [0.05, 0.0, 0.05]]
+    sc["opac"][:] = [0.8, 0.5]
+    tx, ty = tile_grid(w, h)
+    sc["radius"][:] = [60, 0]   # the second one is culled: in no tile, zero gradient
+    sc["rect"][:] = [[0, 0, tx, ty], [0, 0, 3, 3]]
+    sc = with_sorted_list(sc)
+    got, ref = run_bwd(rt, sc, deterministic=True)
+    check_bwd(got, ref)
+    assert all(np.all(got[k][1] == 0) for k in got)
+
+
+@pytest.mark.oclgrind
+def test_adjoint_deterministic_tiny_oclgrind(rt):
+    sc = make_scene(14, 12, 20, 18, 9, (1.0, 5.0), (0.3, 1.0))
+    got, ref = run_bwd(rt, sc, deterministic=True)
+    check_bwd(got, ref)
+
+
+def test_local_memory_limit_is_reported(rt):
+    sc = make_scene(0, 3, 20, 18, 1)
+    sc["features"] = np.zeros((3, 4096), np.float32)
+    with pytest.raises(ValueError, match="local memory"):
+        run_fwd(rt, sc)
 
 
 # -------------------------------------------------------------------------------------- densify stats

@@ -111,9 +111,16 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
 
 
 def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
-                  height: int, raster_out: RasterOut, v_out, v_alpha) -> Dict[str, "object"]:
+                  height: int, raster_out: RasterOut, v_out, v_alpha, deterministic=None
+                  ) -> Dict[str, "object"]:
     """Adjoint of ``rasterize``: from v_out [H,W,C] and v_alpha [H,W] to
-    dict(v_means2d [N,2], v_conic [N,3], v_opac [N], v_features [N,C]) (new pyopencl arrays)."""
+    dict(v_means2d [N,2], v_conic [N,3], v_opac [N], v_features [N,C]) (new pyopencl arrays).
+
+    deterministic: None (default: per-group CAS adds, last-bit differences between runs) or a pair
+    (rect [N,4] int32, depth [N] float32), the arrays the sorted list was built from: then the
+    gradients are bit-identical from run to run (per-entry terms, gathered per Gaussian in tile
+    order; needs M * (6 + C) floats of scratch).
+    """
     import pyopencl.array as cla
     width, height = int(width), int(height)
     _check(means2d, conic, opac, features, tile_ranges, width, height)
@@ -126,11 +133,26 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
         return grads
     _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
     tiles_x, _, gsize, lsize = _grid(width, height)
-    k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", _options(C))
+    det = deterministic is not None
+    M = int(sorted_values.shape[0])
+    if det and M == 0:
+        return grads
+    opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
+    v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None
+    k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
     k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
       tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
       raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-      grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
+      grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+      _buf(rt, v_entry))
+    if det:
+        rect, depth = deterministic
+        assert rect.shape == (N, 4) and rect.dtype == np.int32 and depth.shape == (N,)
+        kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
+        wg = 64
+        kg(q, (round_up(N, wg),), (wg,), v_entry.data, sorted_values.data, tile_ranges.data, rect.data,
+           depth.data, np.int32(N), np.int32(tiles_x), grads["v_means2d"].data, grads["v_conic"].data,
+           grads["v_opac"].data, grads["v_features"].data)
     return grads
 
 
