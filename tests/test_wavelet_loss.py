@@ -111,6 +111,9 @@ def test_autograd_function_and_module(rt):
     assert L.item() == pytest.approx(ref_loss, rel=1e-5)
     np.testing.assert_allclose(rr.grad.numpy(), 3.0 * ref_grad, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(tt.grad.numpy(), -3.0 * ref_grad, rtol=1e-4, atol=1e-7)
+    # default runtime and config
+    assert WaveletLossFunction.apply(torch.tensor(r), torch.tensor(t), None, None, None).item() == \
+        pytest.approx(torch_loss_grad(r, t, None, WaveletConfig())[0], rel=1e-5)
     # the module: both backends, channel-first batches
     chw_r = torch.tensor(np.stack([r.transpose(2, 0, 1)] * 2))
     chw_t = torch.tensor(np.stack([t.transpose(2, 0, 1)] * 2))

@@ -153,14 +153,21 @@ def _to_device(rt, t: torch.Tensor):
 
 
 class WaveletLossFunction(torch.autograd.Function):
-    """loss = WaveletLossFunction.apply(rendered [H,W,C], target [H,W,C], mask [H,W] | None, config, rt).
+    """loss = WaveletLossFunction.apply(rendered [H,W,C], target [H,W,C], mask [H,W] | None,
+    config, rt | None).
 
     Forward and gradient come from the OpenCL kernels (one call computes both); the tensors are
-    copied to and from the OpenCL device.  Gradients flow to rendered and to target (= -v_rendered).
+    copied to and from the OpenCL device (rt None: the default runtime).  Gradients flow to
+    rendered and to target (= -v_rendered), not to the mask.
     """
 
     @staticmethod
-    def forward(ctx, rendered, target, mask, config, rt):
+    def forward(ctx, rendered, target, mask, config, rt=None):
+        if rt is None:
+            from ..runtime import get_runtime
+            rt = get_runtime()
+        if config is None:
+            config = WaveletConfig()
         r = _to_device(rt, rendered)
         t = _to_device(rt, target)
         m = None if mask is None else _to_device(rt, mask)
