@@ -116,6 +116,10 @@ def main(argv=None):
     bwd_med, bwd_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha), a.runs)
     print(f"rasterize backward: median {bwd_med * 1e3:.1f} ms  (min {bwd_min * 1e3:.1f} ms, {a.runs} runs), "
           f"{bwd_med / fwd_med:.2f}x the forward")
+    det = (cla.to_device(q, sc["rect"]), cla.to_device(q, sc["depth"]))
+    det_med, det_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha, deterministic=det),
+                             a.runs)
+    print(f"rasterize backward, deterministic mode: median {det_med * 1e3:.1f} ms  (min {det_min * 1e3:.1f} ms)")
 
     if ref is not None:
         out, alpha, T, lst, t_ref = ref
