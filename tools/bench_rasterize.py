@@ -11,6 +11,7 @@ reference (tens of seconds) and the run time of that reference.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -58,15 +59,23 @@ def synthetic_scene(n, width, height, C=6, seed=0, sigma=(0.5, 6.5), opac=(0.05,
                 sorted_values=svals.astype(np.int32), tile_ranges=tile_ranges_ref(skeys, tiles_x * tiles_y))
 
 
-def timed(rt, fn, runs):
+CPU_TIMES = {}
+
+
+def timed(rt, fn, runs, name=None):
+    """(median, min) wall seconds; also records the median process CPU seconds (all threads,
+    PoCL's included) under name: on a shared machine that is steadier than wall time."""
     fn()
     rt.queue.finish()
-    ts = []
+    ts, cs = [], []
     for _ in range(runs):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
         rt.queue.finish()
         ts.append(time.perf_counter() - t0)
+        cs.append(time.process_time() - c0)
+    if name:
+        CPU_TIMES[name] = statistics.median(cs)
     return statistics.median(ts), min(ts)
 
 
@@ -107,20 +116,24 @@ def main(argv=None):
           f"last (one past the last contributor): mean {last.mean():.1f}; "
           f"mean final alpha {res.alpha.get().mean():.3f}; scene built in {t_build:.1f} s")
 
-    fwd_med, fwd_min = timed(rt, lambda: rasterize(rt, *dev, W, H), a.runs)
+    fwd_med, fwd_min = timed(rt, lambda: rasterize(rt, *dev, W, H), a.runs, "forward")
     print(f"rasterize forward:  median {fwd_med * 1e3:.1f} ms  (min {fwd_min * 1e3:.1f} ms, {a.runs} runs)")
 
     rng = np.random.default_rng(1)
     v_out = cla.to_device(q, rng.standard_normal((H, W, 6)).astype(np.float32))
     v_alpha = cla.to_device(q, rng.standard_normal((H, W)).astype(np.float32))
-    bwd_med, bwd_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha), a.runs)
+    bwd_med, bwd_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha), a.runs,
+                               "backward")
     print(f"rasterize backward: median {bwd_med * 1e3:.1f} ms  (min {bwd_min * 1e3:.1f} ms, {a.runs} runs), "
           f"{bwd_med / fwd_med:.2f}x the forward")
     det = (cla.to_device(q, sc["rect"]), cla.to_device(q, sc["depth"]))
     det_med, det_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha, deterministic=det),
-                             a.runs)
+                             a.runs, "backward deterministic")
     print(f"rasterize backward, deterministic mode: median {det_med * 1e3:.1f} ms  (min {det_min * 1e3:.1f} ms)")
 
+    print(f"load average now {os.getloadavg()[0]:.1f}; median process CPU time per run (all threads): "
+          + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in CPU_TIMES.items())
+          + f"  (/ {rt.compute_units} compute units = the wall time on an idle machine, at best)")
     if ref is not None:
         out, alpha, T, lst, t_ref = ref
         err = np.abs(res.out.get() - out.numpy()).max()
