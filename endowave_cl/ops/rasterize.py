@@ -6,6 +6,7 @@ kernels as build options so both sides use the same values.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Dict
 
@@ -40,7 +41,7 @@ def bwd_local_bytes(C: int) -> int:
     """Local memory of the rasterize_bwd kernel (mirror of its __local arrays)."""
     nv = 6 + C
     per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 4 + 1    # mean, cop, feat, gid, thr, mask, act
-    return BWD_BATCH * per_gaussian + nv * (TILE * TILE + 16) * 4 + TILE * TILE + 8
+    return BWD_BATCH * per_gaussian + nv * (TILE * TILE + 16) * 4 + 8    # + l_pix, l_part
 
 
 def _check_local(rt, need: int, what: str, C: int) -> None:
@@ -57,14 +58,17 @@ class RasterOut:
     last: "object"     # [H, W] int32, one past the last contributor (relative to the tile's start)
 
 
+_DUMMY = weakref.WeakKeyDictionary()   # Runtime -> 4-byte buffer
+
+
 def _buf(rt, arr):
-    """arr's buffer, or a 4-byte dummy for empty arrays (pyopencl gives them no buffer)."""
+    """arr's buffer, or a 4-byte dummy for empty/absent arrays (pyopencl gives empty ones no buffer)."""
     if arr is not None and arr.size > 0:
         return arr.data
-    d = getattr(rt, "_rasterize_dummy", None)
+    d = _DUMMY.get(rt)
     if d is None:
         d = rt.cl.Buffer(rt.ctx, rt.cl.mem_flags.READ_WRITE, 4)
-        rt._rasterize_dummy = d
+        _DUMMY[rt] = d
     return d
 
 
