@@ -25,6 +25,9 @@ class TrainConfig:
     # -- data -----------------------------------------------------------------------------------
     downscale: float = 1.0          # image downscale factor (2 = half size)
     init_points: int = 30000        # Gaussians created by init_gaussians
+    init_time_scale: float = 0.2    # initial temporal std (normalised time; 0: 2 training-frame
+                                    # spacings). 0.2 keeps a Gaussian visible over ~half the sequence:
+                                    # +0.5 dB over 2 spacings after 300 demo steps (24.7 vs 24.2 dB)
     max_gaussians: int = 300000     # densification stops adding Gaussians beyond this count
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
     sh_degree: int = 3

@@ -69,7 +69,7 @@ def _valid_pixels(frame, default_depth: float) -> tuple:
 
 
 def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float, max_points: int,
-                   seed: int = 0, sh_degree: int = 3, nt: int = 2) -> Gaussians:
+                   seed: int = 0, sh_degree: int = 3, nt: int = 2, time_scale: float = 0.0) -> Gaussians:
     """Initial Gaussians (module docstring); frames[k] has image, depth, mask, camera, time."""
     idx = [int(k) for k in train_indices]
     if not idx:
@@ -110,7 +110,8 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     xyz, rgb, tt, size = (np.concatenate(a) for a in (xyz, rgb, tt, size))
     N = xyz.shape[0]
     K = num_sh_bases(sh_degree)
-    sigma_t = TIME_SCALE_FRAMES * _frame_spacing(np.array([frames[k].time for k in idx], np.float64))
+    sigma_t = time_scale if time_scale > 0 else \
+        TIME_SCALE_FRAMES * _frame_spacing(np.array([frames[k].time for k in idx], np.float64))
     sh = np.zeros((N, nt + 1, K, 3), np.float32)
     sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0
     scales = np.empty((N, 4), np.float64)

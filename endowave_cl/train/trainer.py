@@ -82,7 +82,7 @@ class Trainer:
         else:
             from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
-                               max_points=cfg.init_points, seed=cfg.seed)
+                               max_points=cfg.init_points, seed=cfg.seed, time_scale=cfg.init_time_scale)
             self.extent = scene_extent(g)
             ck = None
         self.params = upload(rt, g)
@@ -174,8 +174,9 @@ class Trainer:
             parts["wavelet"] = wl
             total_value += c.lambda_wavelet * wl
         parts["total"] = total_value
-        with torch.no_grad():
-            mse = float(((feats[..., RGB] - tgt.image) ** 2).mean())
+        with torch.no_grad():  # training PSNR on the supervised (tissue) pixels
+            sq = (feats[..., RGB] - tgt.image) ** 2
+            mse = float(sq.mean() if tgt.mask is None else (sq * tgt.mask[..., None]).sum() / (3 * tgt.mask.sum()).clamp(min=1))
         parts["psnr"] = 10 * math.log10(1.0 / max(mse, 1e-12))
         return total_value, parts, cla.to_device(self.rt.queue, np.ascontiguousarray(v, np.float32))
 
