@@ -136,12 +136,14 @@ def main(argv=None):
           + f"  (/ {rt.compute_units} compute units = the wall time on an idle machine, at best)")
     if ref is not None:
         out, alpha, T, lst, t_ref = ref
-        err = np.abs(res.out.get() - out.numpy()).max()
+        diff = np.abs(res.out.get() - out.numpy()).max(-1)
+        err, err999 = diff.max(), np.quantile(diff, 0.999)
         err_t = np.abs(res.T_final.get() - T.numpy()).max()
         same_last = (res.last.get() == lst.numpy()).mean()
-        print(f"dense torch reference (float32): {t_ref:.1f} s; max |out - ref| = {err:.2e}, "
-              f"max |T_final - ref| = {err_t:.2e}, last equal on {100 * same_last:.3f}% of pixels "
-              f"(float32 compositing of hundreds of Gaussians is itself ~1e-4 off float64)")
+        print(f"dense torch reference (float32): {t_ref:.1f} s; |out - ref|: max {err:.2e}, 99.9th percentile "
+              f"{err999:.2e}; max |T_final - ref| = {err_t:.2e}; last equal on {100 * same_last:.3f}% of pixels "
+              f"(isolated large differences are expected where an alpha lies within an ulp of 1/255 and "
+              f"one side keeps the pair while the other skips it)")
 
 if __name__ == "__main__":
     main()
