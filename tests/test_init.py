@@ -83,11 +83,16 @@ def test_subsampling_count_stride_and_seed():
     g = init_gaussians(frames, [0, 1, 2, 3], 0.1, 10.0, max_points=100, seed=3)
     n_valid = sum(int(((f.depth > 0) & (f.mask > 0.5)).sum()) for f in frames)
     assert len(g) == 100
-    # scales carry the stride sqrt(candidates / kept)
+    # scales carry the stride: spacing of the Gaussians seen at one time (marginal above one half)
+    t, sigma_t = g.means[:, 3].astype(np.float64), float(np.exp(g.scales[0, 3]))
+    visible = np.mean([np.mean(np.abs(t - f.time) <= 1.18 * sigma_t) for f in frames])
+    assert 0 < visible < 1
+    stride = max(1.0, math.sqrt(n_valid / len(frames) / (100 * visible)))
+    assert stride > 1
     f0 = frames[0]
     sel = np.isclose(g.means[:, 3], f0.time)
     _, _, z = _project(f0, g.means[sel, :3].astype(np.float64))
-    want = z * 0.5 * (1 / f0.camera.fx + 1 / f0.camera.fy) * math.sqrt(n_valid / 100)
+    want = z * 0.5 * (1 / f0.camera.fx + 1 / f0.camera.fy) * stride
     np.testing.assert_allclose(np.exp(g.scales[sel, 0]), want, rtol=1e-5)
     g2 = init_gaussians(frames, [0, 1, 2, 3], 0.1, 10.0, max_points=100, seed=3)
     np.testing.assert_array_equal(g.means, g2.means)

@@ -14,8 +14,8 @@ surface reproduces the frame exactly; training then moves it.
 Per Gaussian:
 - colour: TEASH DC term sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0 of its pixel, every other term 0;
 - spatial scales (isotropic): the pixel footprint at its depth, depth * (1/fx + 1/fy) / 2, times
-  the subsampling stride sqrt(candidates / kept) (the mean spacing, in pixels, of the kept pixels
-  within one frame), so that neighbours overlap;
+  the subsampling stride: the mean spacing, in pixels, of the Gaussians seen at one time (those
+  whose marginal weight is above one half there), so that neighbours overlap without piling up;
 - time scale: TIME_SCALE_FRAMES x the spacing of the training frame times, so a Gaussian lives
   for a few frames (the marginal exp(-0.5 dt^2 / s_t^2) is 0.6 one frame spacing, 0.14 two
   spacings away, and below the 0.05 cull 2.45 s_t ~ 5 spacings away);
@@ -34,6 +34,7 @@ from ..gaussians import Gaussians, num_sh_bases
 SH_C0 = 0.28209479177387814   # Y_00: DC coefficient c gives colour 0.5 + SH_C0 * c
 INIT_OPACITY = 0.1
 TIME_SCALE_FRAMES = 2.0       # time std in units of the training frame spacing
+VISIBLE_WITHIN = 1.18         # |t - mu_t| < 1.18 sigma_t: marginal weight above one half
 NEAR_FLOOR = 1e-3             # a near bound of 0 carries no scale: use far / 1000 instead
 MASK_THRESHOLD = 0.5          # mask values are 0 / 1; anything above 0.5 is supervised tissue
 
@@ -85,7 +86,13 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     rng = np.random.default_rng(seed)
     n_keep = min(int(max_points), total)
     chosen = np.sort(rng.choice(total, size=n_keep, replace=False)) if n_keep < total else np.arange(total)
-    stride = math.sqrt(total / n_keep)
+    times = np.array([frames[k].time for k in idx], np.float64)                # [F]
+    sigma_t = time_scale if time_scale > 0 else TIME_SCALE_FRAMES * _frame_spacing(times)
+    # The kept points of every frame whose time is within ~sigma_t of t overlap at time t, so the
+    # spacing of the Gaussians seen at once is that of (kept x visible fraction) points per frame.
+    point_times = np.repeat(times, counts)[chosen]                              # [n_keep]
+    visible = np.mean([np.mean(np.abs(point_times - t) <= VISIBLE_WITHIN * sigma_t) for t in times])
+    stride = max(1.0, math.sqrt(total / len(idx) / max(1.0, n_keep * visible)))  # >= one pixel
     starts = np.concatenate([[0], np.cumsum(counts)])
 
     xyz, rgb, tt, size = [], [], [], []
@@ -110,8 +117,6 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     xyz, rgb, tt, size = (np.concatenate(a) for a in (xyz, rgb, tt, size))
     N = xyz.shape[0]
     K = num_sh_bases(sh_degree)
-    sigma_t = time_scale if time_scale > 0 else \
-        TIME_SCALE_FRAMES * _frame_spacing(np.array([frames[k].time for k in idx], np.float64))
     sh = np.zeros((N, nt + 1, K, 3), np.float32)
     sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0
     scales = np.empty((N, 4), np.float64)
