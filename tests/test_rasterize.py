@@ -154,6 +154,16 @@ def test_forward_many_batches(rt):
     check_fwd(r, ref_fwd(sc))
 
 
+def test_indefinite_conics_are_not_culled_wrongly(rt):
+    """Conics that are not positive definite get no cull box: same result as the references."""
+    sc = make_scene(8, 60, 45, 37, 6, (1.0, 4.0), (0.2, 1.0))
+    sc["conic"][::3, 1] = 2.0 * np.sqrt(sc["conic"][::3, 0] * sc["conic"][::3, 2])   # det < 0
+    _, r = run_fwd(rt, sc)
+    check_fwd(r, ref_fwd(sc))
+    got, ref = run_bwd(rt, sc)
+    check_bwd(got, ref)
+
+
 @pytest.mark.oclgrind
 def test_forward_tiny_oclgrind(rt):
     sc = make_scene(11, 12, 20, 18, 6, (1.0, 5.0), (0.3, 1.0))
