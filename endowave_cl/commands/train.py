@@ -16,6 +16,7 @@ from pathlib import Path
 DEMO_SIZE = (160, 128, 24)       # width, height, frames of the built-in demo scene
 DEMO_ITERATIONS = 1500           # enough for a clear PSNR rise in a couple of minutes on 2 CPU cores
 DEMO_INIT_POINTS = 6000          # ~0.3 Gaussians per pixel at 160x128 (30000 suits 640x512)
+DEMO_MAX_GAUSSIANS = 40000       # densification cap for the demo (~2 per pixel), keeps it quick
 
 
 def add_arguments(p) -> None:
@@ -48,8 +49,11 @@ def build_config(args):
         cfg.iterations = args.iterations
     elif args.demo and not args.config and "iterations" not in overrides:
         cfg.iterations = DEMO_ITERATIONS
-    if args.demo and not args.config and "init_points" not in overrides:
-        cfg.init_points = DEMO_INIT_POINTS
+    if args.demo and not args.config:
+        if "init_points" not in overrides:
+            cfg.init_points = DEMO_INIT_POINTS
+        if "max_gaussians" not in overrides:
+            cfg.max_gaussians = DEMO_MAX_GAUSSIANS
     if args.downscale is not None:
         cfg.downscale = args.downscale
     cfg.use_flow &= not args.no_flow
