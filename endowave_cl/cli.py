@@ -24,6 +24,8 @@ COMMANDS = {
     "export": "export a trained model at time t as a 3DGS PLY",
 }
 
+DEVICE_COMMANDS = {"devices", "train", "render", "eval"}  # the ones that run OpenCL kernels
+
 
 def _available():
     for name, help_ in COMMANDS.items():
@@ -46,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, help_ in _available():
         mod = importlib.import_module(f"endowave_cl.commands.{name}")
         p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip(),
-                           parents=[common], formatter_class=argparse.RawDescriptionHelpFormatter)
+                           parents=[common] if name in DEVICE_COMMANDS else [],
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)
     return parser
