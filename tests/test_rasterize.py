@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from conftest import small, oclgrind_active
-from endowave_cl.ops.rasterize import accumulate_densify_stats, rasterize, rasterize_bwd
+from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_WIDTH, VARIANTS, accumulate_densify_stats,
+                                       rasterize, rasterize_bwd)
 from endowave_cl.reference.binning import bin_gaussians_ref, sort_pairs_ref, tile_grid, tile_ranges_ref
 from endowave_cl.reference.rasterize import (ALPHA_MAX, accumulate_densify_stats_ref, rasterize_bwd_ref,
                                              rasterize_dense_ref, rasterize_ref)
@@ -81,6 +82,13 @@ def check_fwd(r, ref, atol=1e-4, rtol=1e-4):
 
 
 # ------------------------------------------------------------------------------------------ forward
+@pytest.fixture(params=VARIANTS)
+def variant(request, monkeypatch):
+    """Run the test with each rasterizer variant (scalar: the GPU kernel; vector: the CPU SIMD one)."""
+    monkeypatch.setenv(ENV_VARIANT, request.param)
+    return request.param
+
+
 FWD_CASES = [
     # seed, n, width, height, C, sigma, opac
     (0, 60, 45, 37, 6, (1.0, 6.0), (0.05, 1.0)),       # not multiples of 16
@@ -91,7 +99,7 @@ FWD_CASES = [
 
 
 @pytest.mark.parametrize("case", FWD_CASES)
-def test_forward_matches_references(rt, case):
+def test_forward_matches_references(rt, variant, case):
     seed, n, w, h, C, sigma, op = case
     sc = make_scene(seed, n, w, h, C, sigma, op)
     _, r = run_fwd(rt, sc)
@@ -101,7 +109,7 @@ def test_forward_matches_references(rt, case):
     check_fwd(r, dense)
 
 
-def test_forward_saturates_and_clamps(rt):
+def test_forward_saturates_and_clamps(rt, variant):
     """Opaque, wide Gaussians: alphas hit ALPHA_MAX and pixels stop early (T < 1e-4)."""
     sc = make_scene(5, 150, 40, 40, 6, (4.0, 12.0), (0.995, 1.0))
     raw = sc["opac"]
@@ -120,7 +128,7 @@ def test_forward_saturates_and_clamps(rt):
     assert (r.last.get() < lens).mean() > 0.5
 
 
-def test_forward_empty_scene(rt):
+def test_forward_empty_scene(rt, variant):
     sc = make_scene(0, 0, 45, 37, 6)
     assert len(sc["sorted_values"]) == 0
     _, r = run_fwd(rt, sc)
@@ -128,7 +136,7 @@ def test_forward_empty_scene(rt):
     assert np.all(r.last.get() == 0)
 
 
-def test_forward_one_gaussian_many_tiles(rt):
+def test_forward_one_gaussian_many_tiles(rt, variant):
     """A single wide Gaussian covering every tile of a 70 x 52 image."""
     w, h = 70, 52
     sc = make_scene(0, 1, w, h, 3)
@@ -145,7 +153,7 @@ def test_forward_one_gaussian_many_tiles(rt):
     assert (r.last.get() == 1).mean() > 0.9
 
 
-def test_forward_many_batches(rt):
+def test_forward_many_batches(rt, variant):
     """More than 256 Gaussians in one tile (several local-memory batches), faint so no pixel stops."""
     sc = make_scene(7, small(700, 300), 20, 18, 6, (3.0, 8.0), (0.01, 0.05))
     _, r = run_fwd(rt, sc)
@@ -154,7 +162,7 @@ def test_forward_many_batches(rt):
     check_fwd(r, ref_fwd(sc))
 
 
-def test_indefinite_conics_are_not_culled_wrongly(rt):
+def test_indefinite_conics_are_not_culled_wrongly(rt, variant):
     """Conics that are not positive definite get no cull box: same result as the references."""
     sc = make_scene(8, 60, 45, 37, 6, (1.0, 4.0), (0.2, 1.0))
     sc["conic"][::3, 1] = 2.0 * np.sqrt(sc["conic"][::3, 0] * sc["conic"][::3, 2])   # det < 0
@@ -165,8 +173,29 @@ def test_indefinite_conics_are_not_culled_wrongly(rt):
 
 
 @pytest.mark.oclgrind
-def test_forward_tiny_oclgrind(rt):
+def test_forward_tiny_oclgrind(rt, variant):
     sc = make_scene(11, 12, 20, 18, 6, (1.0, 5.0), (0.3, 1.0))
+    _, r = run_fwd(rt, sc)
+    check_fwd(r, ref_fwd(sc))
+
+
+@pytest.mark.oclgrind
+def test_forward_vector_saturated_tiny_oclgrind(rt, monkeypatch):
+    """The vector variant with lanes stopping at different Gaussians and a partial last run."""
+    monkeypatch.setenv(ENV_VARIANT, "vector")
+    sc = make_scene(15, 14, 21, 18, 2, (2.0, 6.0), (0.9, 1.0))
+    _, r = run_fwd(rt, sc)
+    check_fwd(r, ref_fwd(sc))
+
+
+@pytest.mark.parametrize("vw", [4, 16])
+@pytest.mark.parametrize("case", [FWD_CASES[0], FWD_CASES[1]])
+def test_forward_vector_widths(rt, monkeypatch, vw, case):
+    """Other lane counts of the vector variant (the default is VEC_WIDTH)."""
+    monkeypatch.setenv(ENV_VARIANT, "vector")
+    monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
+    seed, n, w, h, C, sigma, op = case
+    sc = make_scene(seed, n, w, h, C, sigma, op)
     _, r = run_fwd(rt, sc)
     check_fwd(r, ref_fwd(sc))
 
@@ -317,7 +346,7 @@ def test_adjoint_deterministic_tiny_oclgrind(rt):
     check_bwd(got, ref)
 
 
-def test_local_memory_limit_is_reported(rt):
+def test_local_memory_limit_is_reported(rt, variant):
     sc = make_scene(0, 3, 20, 18, 1)
     sc["features"] = np.zeros((3, 4096), np.float32)
     with pytest.raises(ValueError, match="local memory"):

@@ -1,11 +1,13 @@
 """Benchmark of the tile rasterizer (forward and adjoint) on a synthetic scene.
 
     python tools/bench_rasterize.py [--width 640 --height 512 --n 100000 --runs 7 --check]
+                                    [--variants scalar,vector]
 
 Synthetic inputs: N screen-space Gaussians spread over the view (2D standard deviations 1..7 px,
 i.e. 3-sigma radii of a few to ~20 px), opacities 0.05..0.6, C = 6 features; the sorted list is
 built with the numpy binning reference.  Prints the median of --runs timed runs after one warm-up,
-with the device and the sizes.  --check compares the forward output with the dense torch
+with the device and the sizes, for each kernel variant of --variants in the same run (set through
+$ENDOWAVE_RASTER_VARIANT, see endowave_cl/ops/rasterize.py; default: both).  --check compares the forward output with the dense torch
 reference (tens of seconds) and the run time of that reference.
 """
 from __future__ import annotations
@@ -23,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pyopencl.array as cla  # noqa: E402
 
-from endowave_cl.ops.rasterize import rasterize, rasterize_bwd  # noqa: E402
+from endowave_cl.ops.rasterize import ENV_VARIANT, VARIANTS, raster_variant, rasterize, rasterize_bwd  # noqa: E402
 from endowave_cl.reference.binning import (bin_gaussians_ref, sort_pairs_ref, tile_grid,  # noqa: E402
                                            tile_ranges_ref)
 from endowave_cl.runtime import get_runtime  # noqa: E402
@@ -87,7 +89,10 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--device", default=None)
     ap.add_argument("--check", action="store_true", help="compare with the dense torch reference")
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="comma-separated rasterizer variants to time (scalar, vector)")
     a = ap.parse_args(argv)
+    variants = [v.strip() for v in a.variants.split(",") if v.strip()]
 
     rt = get_runtime(a.device)
     W, H = a.width, a.height
@@ -110,29 +115,42 @@ def main(argv=None):
     last = res.last.get()
     M = len(sc["sorted_values"])
     lens = sc["tile_ranges"][:, 1] - sc["tile_ranges"][:, 0]
-    print(f"device: {rt.describe()}")
+    print(f"device: {rt.describe()}; default variant here: {raster_variant(rt)}")
     print(f"image {W}x{H}, N={a.n} Gaussians, C=6, M={M} tile entries "
           f"(per tile: mean {lens.mean():.0f}, max {lens.max()}), "
           f"last (one past the last contributor): mean {last.mean():.1f}; "
           f"mean final alpha {res.alpha.get().mean():.3f}; scene built in {t_build:.1f} s")
 
-    fwd_med, fwd_min = timed(rt, lambda: rasterize(rt, *dev, W, H), a.runs, "forward")
-    print(f"rasterize forward:  median {fwd_med * 1e3:.1f} ms  (min {fwd_min * 1e3:.1f} ms, {a.runs} runs)")
-
     rng = np.random.default_rng(1)
     v_out = cla.to_device(q, rng.standard_normal((H, W, 6)).astype(np.float32))
     v_alpha = cla.to_device(q, rng.standard_normal((H, W)).astype(np.float32))
-    bwd_med, bwd_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha), a.runs,
-                               "backward")
-    print(f"rasterize backward: median {bwd_med * 1e3:.1f} ms  (min {bwd_min * 1e3:.1f} ms, {a.runs} runs), "
-          f"{bwd_med / fwd_med:.2f}x the forward")
     det = (cla.to_device(q, sc["rect"]), cla.to_device(q, sc["depth"]))
-    det_med, det_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, res, v_out, v_alpha, deterministic=det),
-                             a.runs, "backward deterministic")
-    print(f"rasterize backward, deterministic mode: median {det_med * 1e3:.1f} ms  (min {det_min * 1e3:.1f} ms)")
+    saved = os.environ.get(ENV_VARIANT)
+    for variant in variants:
+        os.environ[ENV_VARIANT] = variant
+        assert raster_variant(rt) == variant
+        vres = rasterize(rt, *dev, W, H)
+        same = (np.array_equal(vres.last.get(), last)
+                and np.abs(vres.out.get() - res.out.get()).max() <= 1e-4)
+        fwd_med, fwd_min = timed(rt, lambda: rasterize(rt, *dev, W, H), a.runs, f"{variant} forward")
+        print(f"[{variant}] rasterize forward:  median {fwd_med * 1e3:.1f} ms  (min {fwd_min * 1e3:.1f} ms, "
+              f"{a.runs} runs); same result as the default variant: {same}")
+        bwd_med, bwd_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, vres, v_out, v_alpha), a.runs,
+                                 f"{variant} backward")
+        print(f"[{variant}] rasterize backward: median {bwd_med * 1e3:.1f} ms  (min {bwd_min * 1e3:.1f} ms, "
+              f"{a.runs} runs), {bwd_med / fwd_med:.2f}x the forward")
+        det_med, det_min = timed(rt, lambda: rasterize_bwd(rt, *dev, W, H, vres, v_out, v_alpha,
+                                                           deterministic=det),
+                                 a.runs, f"{variant} backward deterministic")
+        print(f"[{variant}] rasterize backward, deterministic mode: median {det_med * 1e3:.1f} ms  "
+              f"(min {det_min * 1e3:.1f} ms)")
+    if saved is None:
+        os.environ.pop(ENV_VARIANT, None)
+    else:
+        os.environ[ENV_VARIANT] = saved
 
     print(f"load average now {os.getloadavg()[0]:.1f}; median process CPU time per run (all threads): "
-          + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in CPU_TIMES.items())
+          + "; ".join(f"{k} {v * 1e3:.0f} ms" for k, v in CPU_TIMES.items())
           + f"  (/ {rt.compute_units} compute units = the wall time on an idle machine, at best)")
     if ref is not None:
         out, alpha, T, lst, t_ref = ref

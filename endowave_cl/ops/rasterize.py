@@ -1,11 +1,13 @@
 """Host ops of the tile rasterizer: forward, adjoint and densification statistics.
 
-Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl.  References (same names):
+Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl, and the explicit-SIMD forward
+cl/rasterize_vec.cl for CPU drivers (see ``raster_variant``).  References (same names):
 endowave_cl/reference/rasterize.py, whose constants (ALPHA_MAX, ALPHA_MIN, T_STOP) are passed to the
 kernels as build options so both sides use the same values.
 """
 from __future__ import annotations
 
+import os
 import weakref
 from dataclasses import dataclass
 from typing import Dict
@@ -28,6 +30,34 @@ def _options(C: int):
             f"-DALPHA_MIN={_f32_literal(ALPHA_MIN)}", f"-DT_STOP={_f32_literal(T_STOP)}"]
 
 
+# Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl), the GPU path.  "vector": each
+# work-item composites VEC_WIDTH horizontally adjacent pixels in floatN lanes (cl/rasterize_vec.cl):
+# CPU drivers such as PoCL do not vectorise the scalar kernel's per-pixel loop.  Same results.
+ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
+ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
+VEC_WIDTH = 8                               # default lanes (fastest measured on PoCL, 2-core x86)
+VEC_BLOCK_ROWS = 4                          # rows of a culling run-block of the vector variant (BROWS)
+VARIANTS = ("scalar", "vector")
+
+
+def raster_variant(rt) -> str:
+    """The rasterizer variant for this runtime: $ENDOWAVE_RASTER_VARIANT if set, else "vector" on CPU
+    devices (not rt.is_gpu, Oclgrind included) and "scalar" on GPUs."""
+    v = os.environ.get(ENV_VARIANT, "").strip().lower()
+    if v:
+        if v not in VARIANTS:
+            raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
+        return v
+    return "scalar" if rt.is_gpu else "vector"
+
+
+def vec_width() -> int:
+    w = int(os.environ.get(ENV_VEC_WIDTH, "") or VEC_WIDTH)
+    if w not in (2, 4, 8, 16):
+        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected 2, 4, 8 or 16")
+    return w
+
+
 BWD_BATCH = 128   # Gaussians per local-memory batch of rasterize_bwd.cl (BATCH there)
 
 
@@ -35,6 +65,14 @@ def fwd_local_bytes(C: int) -> int:
     """Local memory of the rasterize kernel (mirror of its __local arrays)."""
     per_gaussian = 8 + 16 + 4 * C + 4 + 16 + 16      # mean, cop, feat, thr, box, 16 list slots
     return TILE * TILE * per_gaussian + 16 * 4 + 8
+
+
+def fwd_vec_local_bytes(C: int) -> int:
+    """Local memory of the rasterize_vec kernel (mirror of its __local arrays)."""
+    vw = vec_width()
+    n_blk = (TILE // vw) * (TILE // VEC_BLOCK_ROWS)
+    per_gaussian = 8 + 16 + 4 * C + 4 + 16 + n_blk   # mean, cop, feat, thr, box, list slots
+    return TILE * TILE * per_gaussian + 4 * n_blk + 8
 
 
 def bwd_local_bytes(C: int) -> int:
@@ -105,9 +143,15 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
                     cla.empty(q, (height, width), np.float32), cla.empty(q, (height, width), np.int32))
     if width == 0 or height == 0:
         return res
-    _check_local(rt, fwd_local_bytes(C), "rasterize", C)
     tiles_x, _, gsize, lsize = _grid(width, height)
-    k = rt.kernel("rasterize.cl", "rasterize", _options(C))
+    if raster_variant(rt) == "vector":
+        _check_local(rt, fwd_vec_local_bytes(C), "rasterize", C)
+        vw = vec_width()
+        k = rt.kernel("rasterize_vec.cl", "rasterize_vec", _options(C) + [f"-DVW={vw}", f"-DBROWS={VEC_BLOCK_ROWS}"])
+        gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
+    else:
+        _check_local(rt, fwd_local_bytes(C), "rasterize", C)
+        k = rt.kernel("rasterize.cl", "rasterize", _options(C))
     k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
       _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
       res.out.data, res.alpha.data, res.T_final.data, res.last.data)

@@ -1,0 +1,187 @@
+/* Tile rasterizer, forward, explicit-SIMD variant for CPU OpenCL drivers (docs/ARCHITECTURE.md
+ * "rasterize").  OpenCL C 1.2.
+ *
+ * Same results and rules as rasterize.cl (the GPU path, one pixel per work-item), but each
+ * work-item composites a horizontal run of VW pixels held in the lanes of floatVW vectors: PoCL does
+ * not vectorise the per-pixel loop of the scalar kernel, so the SIMD is written out here.  A tile
+ * is one work-group of RUNS x TILE work-items (RUNS = TILE / VW runs per row); work-item (lx, ly)
+ * owns pixels (tx * TILE + lx * VW + l, ty * TILE + ly), l = 0 .. VW-1.
+ *
+ * The tile's Gaussians are staged through local memory in batches of BATCH, front to back.  Per
+ * lane the compositing is exactly that of rasterize.cl (same helper functions, same operation
+ * order; vexp_nonpos equals exp_nonpos bit for bit): skip power > 0, alpha = min(ALPHA_MAX, opac G),
+ * skip alpha < ALPHA_MIN, stop before a Gaussian that would bring T below T_STOP.  Lanes are masked
+ * (vector ?:): a lane that skips or is done adds nothing; the work-item leaves the batch once all its
+ * lanes are done, and the group stops loading batches once every work-item is done.
+ *
+ * Culling (exact, as in rasterize.cl): per batch, each run-block (VW x BROWS pixels: BROWS runs one
+ * above the other) gets the ordered list of the batch's Gaussians whose cull box reaches one of its
+ * pixel centres; a work-item walks its block's list, skips entries whose box misses its row, and
+ * masks lanes whose power is below the skip threshold.  Every work-item reaches every barrier.
+ *
+ * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>.
+ */
+#include "common.h"
+#include "vexp.h"
+#define RASTERIZE_HELPERS_ONLY
+#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box */
+
+#if (TILE % VW) != 0
+#error "VW must divide TILE"
+#endif
+#define RUNS (TILE / VW)              /* work-items per tile row */
+#define N_WI (RUNS * TILE)            /* work-items per group */
+#define BATCH TILE_PIXELS             /* Gaussians per local-memory batch (indices fit a uchar) */
+#ifndef BROWS
+#define BROWS 4                       /* rows of a run-block: VW x BROWS pixels share a list */
+#endif
+#if (TILE % BROWS) != 0
+#error "BROWS must divide TILE"
+#endif
+#define N_BLK (RUNS * (TILE / BROWS)) /* run-blocks per tile (<= N_WI) */
+
+__kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
+void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
+                   __global const float *conic,      /* [N, 3] (a, b, c) */
+                   __global const float *opac,       /* [N] */
+                   __global const float *features,   /* [N, C] */
+                   __global const int *sorted_values,/* [M] Gaussian ids, tile-major then depth */
+                   __global const int2 *tile_ranges, /* [n_tiles] (start, end) */
+                   const int width, const int height, const int tiles_x,
+                   __global float *out,              /* [H, W, C] */
+                   __global float *alpha_out,        /* [H, W] */
+                   __global float *t_final,          /* [H, W] */
+                   __global int *last_out)           /* [H, W] */
+{
+    __local float2 l_mean[BATCH];
+    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
+    __local float l_feat[BATCH * C];
+    __local float l_thr[BATCH];                  /* power threshold of the early skip */
+    __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
+    __local uchar l_list[N_BLK * BATCH];         /* per run-block lists of batch indices */
+    __local int l_len[N_BLK];
+    __local int l_done[2];                       /* done-work-item counters, used alternately */
+
+    const int lx = get_local_id(0), ly = get_local_id(1);
+    const int lid = ly * RUNS + lx;
+    const int tx = get_group_id(0), ty = get_group_id(1);
+    const int tile = ty * tiles_x + tx;
+    const int ix0 = tx * TILE + lx * VW;         /* first pixel of the run */
+    const int iy = ty * TILE + ly;
+    const float px0 = (float)ix0 + 0.5f, py = (float)iy + 0.5f;
+    const int my_blk = (ly / BROWS) * RUNS + lx;
+
+    /* lane offsets 0 .. VW-1 */
+    int lane_i[VW];
+    for (int l = 0; l < VW; l++) lane_i[l] = l;
+    const intV lane = vloadV(0, lane_i);
+    const floatV px = (floatV)(px0) + convert_floatV(lane);
+    /* lanes outside the image start done: they write nothing */
+    const intV inside = (lane + ix0 < width) & (iy < height ? (intV)(-1) : (intV)(0));
+
+    const int2 range = tile_ranges[tile];
+    const int n_entries = range.y - range.x;
+    const int n_batches = (n_entries + BATCH - 1) / BATCH;
+
+    floatV T = (floatV)(1.0f);
+    floatV acc[C];
+    for (int c = 0; c < C; c++) acc[c] = (floatV)(0.0f);
+    intV last = (intV)(0);
+    intV done = ~inside;                         /* -1 where done */
+
+    if (lid < 2) l_done[lid] = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+
+    for (int b = 0; b < n_batches; b++) {
+        /* Count finished work-items; the count is uniform after the barrier, so is the break. */
+        if (lid == 0) l_done[(b + 1) & 1] = 0;
+        if (VALL(done)) atomic_inc(&l_done[b & 1]);
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (l_done[b & 1] == N_WI) break;
+
+        const int base = range.x + b * BATCH;
+        const int count = min(BATCH, range.y - base);
+        for (int j = lid; j < count; j += N_WI) {
+            const int g = sorted_values[base + j];
+            const float2 mean = means2d[g];
+            const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
+            l_mean[j] = mean;
+            l_cop[j] = cop;
+            for (int c = 0; c < C; c++) l_feat[j * C + c] = features[g * C + c];
+            const float thr = skip_threshold(cop.w);
+            l_thr[j] = thr;
+            l_box[j] = cull_box(mean, cop, thr);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (lid < N_BLK) {   /* list of the batch entries whose cull box reaches run-block lid */
+            const float bx0 = (float)(tx * TILE + (lid % RUNS) * VW) + 0.5f, bx1 = bx0 + (float)(VW - 1);
+            const float by0 = (float)(ty * TILE + (lid / RUNS) * BROWS) + 0.5f, by1 = by0 + (float)(BROWS - 1);
+            __local uchar *list = l_list + lid * BATCH;
+            int n = 0;
+            for (int j = 0; j < count; j++) {
+                const float4 bb = l_box[j];
+                if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (uchar)j;
+            }
+            l_len[lid] = n;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+
+        const int n_mine = l_len[my_blk];
+        __local const uchar *mine = l_list + my_blk * BATCH;
+        if (!VALL(done)) {
+            /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
+            floatV t_cur = T;
+            floatV a_cur[C];
+            for (int c = 0; c < C; c++) a_cur[c] = acc[c];
+            intV last_cur = last;
+            intV done_cur = done;
+            for (int i = 0; i < n_mine; i++) {
+                const int j = mine[i];
+                const float4 bb = l_box[j];   /* the block list tested x; this row's y: */
+                if (!(bb.z <= py && bb.w >= py)) continue;
+                const float4 cop = l_cop[j];
+                const float2 mean = l_mean[j];
+                const floatV dx = (floatV)(mean.x) - px;
+                const float dy = mean.y - py;
+                /* gauss_power, lane for lane */
+                const floatV power = -0.5f * (cop.x * dx * dx + (floatV)(cop.z * dy * dy)) - cop.y * dx * dy;
+                intV use = ~done_cur & (power <= 0.0f) & (power >= l_thr[j]);
+                if (!VANY(use)) continue;
+                const floatV raw = cop.w * vexp_nonpos(power);
+                const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                use &= alpha >= ALPHA_MIN;
+                const floatV t_next = t_cur * (1.0f - alpha);
+                const intV stop = use & (t_next < T_STOP);
+                done_cur |= stop;
+                use &= ~stop;
+                const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
+                for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
+                t_cur = use != 0 ? t_next : t_cur;
+                last_cur = use != 0 ? (intV)(b * BATCH + j + 1) : last_cur;
+                if (VALL(done_cur)) break;
+            }
+            T = t_cur;
+            for (int c = 0; c < C; c++) acc[c] = a_cur[c];
+            last = last_cur;
+            done = done_cur;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the local arrays */
+    }
+
+    /* lanes to pixels */
+    float T_l[VW], acc_l[VW * C];
+    int last_l[VW], in_l[VW];
+    vstoreV(T, 0, T_l);
+    for (int c = 0; c < C; c++) vstoreV(acc[c], c, acc_l);
+    vstoreV(last, 0, last_l);
+    vstoreV(inside, 0, in_l);
+    for (int l = 0; l < VW; l++) {
+        if (in_l[l]) {
+            const int p = iy * width + ix0 + l;
+            for (int c = 0; c < C; c++) out[p * C + c] = acc_l[c * VW + l];
+            alpha_out[p] = 1.0f - T_l[l];
+            t_final[p] = T_l[l];
+            last_out[p] = last_l[l];
+        }
+    }
+}
