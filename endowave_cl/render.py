@@ -76,12 +76,15 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
 
 
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
-                    densify_stats: Optional[Dict[str, object]] = None, timed: bool = False) -> Dict[str, object]:
+                    densify_stats: Optional[Dict[str, object]] = None, timed: bool = False,
+                    deterministic: bool = False) -> Dict[str, object]:
     """Gradients of every parameter from the gradient images.
 
     v_features: cla [H, W, C] gradient of the loss w.r.t. the composited channels;
     v_alpha: cla [H, W] or None (zero); densify_stats: optional dict of device arrays
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
+    deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
+    instead of float atomics; see ops/rasterize.py).
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
@@ -95,7 +98,8 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     t0 = time.perf_counter()
     p = out.proj
     v2d = rasterize_bwd(rt, p.means2d, p.conic, p.opac, p.features, out.sorted_values, out.tile_ranges,
-                        cam.width, cam.height, out.raster, v_features, v_alpha)
+                        cam.width, cam.height, out.raster, v_features, v_alpha,
+                        deterministic=(p.rect, p.depth) if deterministic else None)
     t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
     if densify_stats is not None and len(params["means"]):
         accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,

@@ -107,3 +107,21 @@ def test_densify_stats_are_accumulated(rt):
     assert np.array_equal(stats["count"].get() > 0, visible)
     assert np.all(stats["grad_accum"].get()[~visible] == 0)
     np.testing.assert_array_equal(stats["max_radius"].get()[visible], out.proj.radius.get()[visible])
+
+
+def test_deterministic_backward_is_bit_identical(rt):
+    import pyopencl.array as cla
+    g = _scene(300, 9, 64, 48)
+    cam = _camera(64, 48)
+    params = upload(rt, g)
+    v = cla.to_device(rt.queue, np.random.default_rng(0).standard_normal((48, 64, 6)).astype(np.float32))
+    runs = []
+    for _ in range(3):
+        out = render(rt, params, cam, 0.5, 0.6)
+        runs.append({k: a.get() for k, a in render_backward(rt, params, out, v, deterministic=True).items()})
+    for k in runs[0]:
+        assert np.array_equal(runs[0][k], runs[1][k]) and np.array_equal(runs[0][k], runs[2][k]), k
+    out = render(rt, params, cam, 0.5, 0.6)
+    free = render_backward(rt, params, out, v)
+    for k, a in free.items():   # the atomic mode computes the same gradients up to rounding
+        np.testing.assert_allclose(a.get(), runs[0][k], rtol=1e-4, atol=1e-5 * (np.abs(runs[0][k]).max() + 1e-12))

@@ -19,6 +19,7 @@ class TrainConfig:
     iterations: int = 3000          # demo default: a few minutes per 1000 steps on a GPU, usable
                                     # on a CPU; 4DGS trains 30000 (pass iterations = 30000)
     seed: int = 0
+    deterministic: bool = False     # bit-identical gradients (no float atomics; ~same speed on PoCL)
     log_every: int = 50
     eval_every: int = 500
     checkpoint_every: int = 1000
