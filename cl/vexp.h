@@ -55,6 +55,22 @@ inline int vred_or(intV m) {
     return m2.x | m2.y;
 #endif
 }
+/* sum of the lanes, pairwise halving (a fixed order) */
+inline float vhsum(floatV v) {
+#if VW == 16
+    const float8 v8 = v.lo + v.hi; const float4 v4 = v8.lo + v8.hi;
+#elif VW == 8
+    const float4 v4 = v.lo + v.hi;
+#elif VW == 4
+    const float4 v4 = v;
+#endif
+#if VW == 2
+    return v.x + v.y;
+#else
+    const float2 v2 = v4.lo + v4.hi;
+    return v2.x + v2.y;
+#endif
+}
 #define VALL(m) (vred_and(m) != 0)    /* every lane true */
 #define VANY(m) (vred_or(m) != 0)     /* some lane true */
 

@@ -84,7 +84,8 @@ def check_fwd(r, ref, atol=1e-4, rtol=1e-4):
 # ------------------------------------------------------------------------------------------ forward
 @pytest.fixture(params=VARIANTS)
 def variant(request, monkeypatch):
-    """Run the test with each rasterizer variant (scalar: the GPU kernel; vector: the CPU SIMD one)."""
+    """Run the test with each rasterizer variant (scalar: the GPU kernels; vector: the CPU SIMD ones),
+    forward and adjoint."""
     monkeypatch.setenv(ENV_VARIANT, request.param)
     return request.param
 
@@ -235,15 +236,28 @@ BWD_CASES = [
 ]
 
 
+@pytest.mark.parametrize("vw", [4, 16])
+@pytest.mark.parametrize("case", [BWD_CASES[1], BWD_CASES[4]])
+def test_adjoint_vector_widths(rt, monkeypatch, vw, case):
+    """Other lane counts of the vector variant, both reduction modes."""
+    monkeypatch.setenv(ENV_VARIANT, "vector")
+    monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
+    seed, n, w, h, C, sigma, op = case
+    sc = make_scene(seed, n, w, h, C, sigma, op)
+    for det in (False, True):
+        got, ref = run_bwd(rt, sc, seed, deterministic=det)
+        check_bwd(got, ref)
+
+
 @pytest.mark.parametrize("case", BWD_CASES)
-def test_adjoint_matches_autograd(rt, case):
+def test_adjoint_matches_autograd(rt, variant, case):
     seed, n, w, h, C, sigma, op = case
     sc = make_scene(seed, n, w, h, C, sigma, op)
     got, ref = run_bwd(rt, sc, seed)
     check_bwd(got, ref)
 
 
-def test_adjoint_clamp_blocks_gradient(rt):
+def test_adjoint_clamp_blocks_gradient(rt, variant):
     """One Gaussian with opac * G > ALPHA_MAX over every pixel it touches: no gradient to opac or conic."""
     w, h = 20, 18
     sc = make_scene(0, 1, w, h, 2)
@@ -259,7 +273,7 @@ def test_adjoint_clamp_blocks_gradient(rt):
     check_bwd(got, ref)
 
 
-def test_adjoint_no_lost_update(rt):
+def test_adjoint_no_lost_update(rt, variant):
     """Every pixel of many tiles hits the same few Gaussians: the CAS sums must equal the reference."""
     w, h = small(96, 32), small(80, 32)
     n = 3
@@ -286,7 +300,7 @@ def test_adjoint_no_lost_update(rt):
     assert np.all(wsum > 10.0)
 
 
-def test_adjoint_empty_scene(rt):
+def test_adjoint_empty_scene(rt, variant):
     sc = make_scene(0, 0, 45, 37, 6)
     got, ref = run_bwd(rt, sc)
     for k in got:
@@ -294,21 +308,21 @@ def test_adjoint_empty_scene(rt):
 
 
 @pytest.mark.oclgrind
-def test_adjoint_tiny_oclgrind(rt):
+def test_adjoint_tiny_oclgrind(rt, variant):
     sc = make_scene(12, 12, 20, 18, 6, (1.0, 5.0), (0.3, 1.0))
     got, ref = run_bwd(rt, sc)
     check_bwd(got, ref)
 
 
 @pytest.mark.oclgrind
-def test_adjoint_saturated_tiny_oclgrind(rt):
+def test_adjoint_saturated_tiny_oclgrind(rt, variant):
     sc = make_scene(13, 14, 20, 18, 2, (2.0, 6.0), (0.9, 1.0))
     got, ref = run_bwd(rt, sc)
     check_bwd(got, ref)
 
 
 @pytest.mark.parametrize("case", [BWD_CASES[0], BWD_CASES[4]])
-def test_adjoint_deterministic_mode(rt, case):
+def test_adjoint_deterministic_mode(rt, variant, case):
     """Bit-identical gradients over runs, equal to the reference like the default mode."""
     seed, n, w, h, C, sigma, op = case
     sc = make_scene(seed, n, w, h, C, sigma, op)
@@ -324,7 +338,7 @@ def test_adjoint_deterministic_mode(rt, case):
     check_bwd(runs[0][0], default, rtol=1e-4)
 
 
-def test_adjoint_deterministic_one_gaussian_many_tiles(rt):
+def test_adjoint_deterministic_one_gaussian_many_tiles(rt, variant):
     w, h = 70, 52
     sc = make_scene(0, 2, w, h, 3)
     sc["means2d"][:] = [[35.2, 26.7], [20.0, 30.0]]
@@ -340,7 +354,7 @@ def test_adjoint_deterministic_one_gaussian_many_tiles(rt):
 
 
 @pytest.mark.oclgrind
-def test_adjoint_deterministic_tiny_oclgrind(rt):
+def test_adjoint_deterministic_tiny_oclgrind(rt, variant):
     sc = make_scene(14, 12, 20, 18, 9, (1.0, 5.0), (0.3, 1.0))
     got, ref = run_bwd(rt, sc, deterministic=True)
     check_bwd(got, ref)

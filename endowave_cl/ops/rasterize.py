@@ -1,7 +1,7 @@
 """Host ops of the tile rasterizer: forward, adjoint and densification statistics.
 
-Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl, and the explicit-SIMD forward
-cl/rasterize_vec.cl for CPU drivers (see ``raster_variant``).  References (same names):
+Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl, and the explicit-SIMD
+cl/rasterize_vec.cl, cl/rasterize_vec_bwd.cl for CPU drivers (see ``raster_variant``).  References (same names):
 endowave_cl/reference/rasterize.py, whose constants (ALPHA_MAX, ALPHA_MIN, T_STOP) are passed to the
 kernels as build options so both sides use the same values.
 """
@@ -31,7 +31,8 @@ def _options(C: int):
 
 
 # Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl), the GPU path.  "vector": each
-# work-item composites VEC_WIDTH horizontally adjacent pixels in floatN lanes (cl/rasterize_vec.cl):
+# work-item composites VEC_WIDTH horizontally adjacent pixels in floatN lanes (cl/rasterize_vec.cl,
+# cl/rasterize_vec_bwd.cl):
 # CPU drivers such as PoCL do not vectorise the scalar kernel's per-pixel loop.  Same results.
 ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
 ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
@@ -73,6 +74,23 @@ def fwd_vec_local_bytes(C: int) -> int:
     n_blk = (TILE // vw) * (TILE // VEC_BLOCK_ROWS)
     per_gaussian = 8 + 16 + 4 * C + 4 + 16 + n_blk   # mean, cop, feat, thr, box, list slots
     return TILE * TILE * per_gaussian + 4 * n_blk + 8
+
+
+VEC_BWD_BATCHES = (32, 16, 8)   # Gaussians per batch of rasterize_vec_bwd.cl, largest that fits first
+
+
+def vec_bwd_local_bytes(C: int, batch: int) -> int:
+    """Local memory of the rasterize_vec_bwd kernel (mirror of its __local arrays)."""
+    n_wi = (TILE // vec_width()) * TILE
+    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 16 + 4 * (6 + C) * n_wi   # mean, cop, feat, gid, thr, box, part
+    return batch * per_gaussian + 4
+
+
+def vec_bwd_batch(rt, C: int) -> int:
+    for batch in VEC_BWD_BATCHES:
+        if vec_bwd_local_bytes(C, batch) <= rt.local_mem_size:
+            return batch
+    return VEC_BWD_BATCHES[-1]   # too big: _check_local reports it
 
 
 def bwd_local_bytes(C: int) -> int:
@@ -179,7 +197,6 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
              "v_opac": cla.zeros(q, (N,), np.float32), "v_features": cla.zeros(q, (N, C), np.float32)}
     if N == 0 or width == 0 or height == 0:
         return grads
-    _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
     tiles_x, _, gsize, lsize = _grid(width, height)
     det = deterministic is not None
     M = int(sorted_values.shape[0])
@@ -187,7 +204,14 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
         return grads
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
     v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None
-    k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
+    if raster_variant(rt) == "vector":
+        vw, batch = vec_width(), vec_bwd_batch(rt, C)
+        _check_local(rt, vec_bwd_local_bytes(C, batch), "rasterize_bwd", C)
+        k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd", opts + [f"-DVW={vw}", f"-DBATCH={batch}"])
+        gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
+    else:
+        _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
+        k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
     k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
       tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
       raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,

@@ -1,0 +1,209 @@
+/* Tile rasterizer, adjoint, explicit-SIMD variant for CPU OpenCL drivers (docs/ARCHITECTURE.md
+ * "rasterize").  OpenCL C 1.2.
+ *
+ * Same maths as rasterize_bwd.cl (the GPU path; see its header for the formulas), with the work
+ * layout of rasterize_vec.cl: one work-group of RUNS x TILE work-items per tile, work-item (lx, ly)
+ * owns the VW pixels (tx * TILE + lx * VW + l, ty * TILE + ly) in the lanes of floatVW vectors.
+ * The group walks the tile's list back to front, from the tile's largest `last` down to entry 0, in
+ * batches of BATCH Gaussians staged in local memory; a lane takes part for the entries before its
+ * own `last`.  Per lane the skip tests are those of the forward pass (same helpers, vexp_nonpos ==
+ * exp_nonpos bit for bit), so the same Gaussians count as contributors.
+ *
+ * Reduction, without atomics in local memory and without a barrier per Gaussian: for each entry j
+ * of the batch each work-item sums its lanes' NV gradient terms (vhsum: fixed order) and stores
+ * them to its own slot l_part[j][k][work-item] (zeros where it has nothing); after the batch, one
+ * work-item per (j, k) sums the N_WI slots in work-item order and adds the total to the global
+ * gradient with one atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1, stores it to
+ * v_entry[entry] for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
+ *
+ * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
+ * the largest that fits local memory, since l_part holds BATCH * NV * N_WI floats), -DDETERMINISTIC.
+ */
+#include "common.h"
+#include "vexp.h"
+#define RASTERIZE_HELPERS_ONLY
+#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box */
+
+#ifndef DETERMINISTIC
+#define DETERMINISTIC 0
+#endif
+#if (TILE % VW) != 0
+#error "VW must divide TILE"
+#endif
+#define RUNS (TILE / VW)       /* work-items per tile row */
+#define N_WI (RUNS * TILE)     /* work-items per group */
+#define NV (6 + C)             /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
+#ifndef BATCH
+#define BATCH 16
+#endif
+#if (N_WI % 16) != 0
+#error "the reduction reads N_WI / 4 float4 in groups of four"
+#endif
+
+__kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
+void rasterize_vec_bwd(__global const float2 *means2d,   /* [N, 2] */
+                       __global const float *conic,      /* [N, 3] */
+                       __global const float *opac,       /* [N] */
+                       __global const float *features,   /* [N, C] */
+                       __global const int *sorted_values,/* [M] */
+                       __global const int2 *tile_ranges, /* [n_tiles] */
+                       const int width, const int height, const int tiles_x,
+                       __global const float *t_final,    /* [H, W] */
+                       __global const int *last_in,      /* [H, W] */
+                       __global const float *v_out,      /* [H, W, C] */
+                       __global const float *v_alpha,    /* [H, W] */
+                       volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
+                       volatile __global float *v_conic,    /* [N, 3] */
+                       volatile __global float *v_opac,     /* [N] */
+                       volatile __global float *v_features, /* [N, C] */
+                       __global float *v_entry)          /* [M, NV] per-entry terms (DETERMINISTIC only) */
+{
+    __local float2 l_mean[BATCH];
+    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
+    __local float l_feat[BATCH * C];
+    __local int l_gid[BATCH];
+    __local float l_thr[BATCH];
+    __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
+    __local float4 l_part4[BATCH * NV * N_WI / 4];   /* [BATCH, NV, N_WI] per-work-item sums */
+    __local float *l_part = (__local float *)l_part4;
+    __local int l_max_last;
+
+    const int lx = get_local_id(0), ly = get_local_id(1);
+    const int lid = ly * RUNS + lx;
+    const int tx = get_group_id(0), ty = get_group_id(1);
+    const int tile = ty * tiles_x + tx;
+    const int ix0 = tx * TILE + lx * VW;         /* first pixel of the run */
+    const int iy = ty * TILE + ly;
+    const float px0 = (float)ix0 + 0.5f, py = (float)iy + 0.5f;
+    const float px1 = px0 + (float)(VW - 1);     /* last pixel centre of the run */
+
+    /* per-lane inputs; lanes outside the image: T_final 1, last 0, no cotangent */
+    float tf_l[VW], va_l[VW], lane_l[VW], vo_l[C * VW];
+    int last_l[VW];
+    int max_last_mine = 0;
+    for (int l = 0; l < VW; l++) {
+        const int ix = ix0 + l;
+        const bool in = ix < width && iy < height;
+        const int p = iy * width + ix;
+        tf_l[l] = in ? t_final[p] : 1.0f;
+        last_l[l] = in ? last_in[p] : 0;
+        va_l[l] = in ? v_alpha[p] : 0.0f;
+        for (int c = 0; c < C; c++) vo_l[c * VW + l] = in ? v_out[p * C + c] : 0.0f;
+        lane_l[l] = (float)l;
+        max_last_mine = max(max_last_mine, last_l[l]);
+    }
+    const floatV px = (floatV)(px0) + vloadV(0, lane_l);
+    const floatV T_fin = vloadV(0, tf_l);
+    const intV last = vloadV(0, last_l);
+    const floatV va_tf = vloadV(0, va_l) * T_fin;    /* v_alpha T_final */
+    floatV vo[C], S[C];
+    for (int c = 0; c < C; c++) { vo[c] = vloadV(c, vo_l); S[c] = (floatV)(0.0f); }
+    floatV T = T_fin;
+
+    const int2 range = tile_ranges[tile];
+    if (lid == 0) l_max_last = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (max_last_mine > 0) atomic_max(&l_max_last, max_last_mine);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int max_last = l_max_last;                          /* uniform */
+    const int n_batches = (max_last + BATCH - 1) / BATCH;
+
+    for (int b = n_batches - 1; b >= 0; b--) {
+        const int base = range.x + b * BATCH;
+        const int count = min(BATCH, max_last - b * BATCH);  /* entries of this batch to walk */
+        for (int j = lid; j < count; j += N_WI) {
+            const int g = sorted_values[base + j];
+            l_gid[j] = g;
+            const float2 mean = means2d[g];
+            const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
+            l_mean[j] = mean;
+            l_cop[j] = cop;
+            for (int c = 0; c < C; c++) l_feat[j * C + c] = features[g * C + c];
+            const float thr = skip_threshold(cop.w);
+            l_thr[j] = thr;
+            l_box[j] = cull_box(mean, cop, thr);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+
+        {   /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
+            floatV t_cur = T;
+            floatV s_cur[C];
+            for (int c = 0; c < C; c++) s_cur[c] = S[c];
+            for (int j = count - 1; j >= 0; j--) {
+                __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
+                const float4 bb = l_box[j];
+                bool any_used = false;
+                if (bb.x <= px1 && bb.y >= px0 && bb.z <= py && bb.w >= py) {
+                    const float4 cop = l_cop[j];
+                    const float2 mean = l_mean[j];
+                    const floatV dx = (floatV)(mean.x) - px;
+                    const float dy = mean.y - py;
+                    const floatV power =
+                        -0.5f * (cop.x * dx * dx + (floatV)(cop.z * dy * dy)) - cop.y * dx * dy;
+                    intV use = ((intV)(b * BATCH + j) < last) & (power <= 0.0f) & (power >= l_thr[j]);
+                    if (VANY(use)) {
+                        const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
+                        const floatV raw = cop.w * G;
+                        const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                        use &= alpha >= ALPHA_MIN;
+                        any_used = VANY(use);
+                        if (any_used) {
+                            const floatV inv_om = 1.0f / (1.0f - alpha);
+                            t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
+                            const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
+                            floatV v_al = va_tf * inv_om;              /* d L / d alpha_j */
+                            for (int c = 0; c < C; c++) {
+                                const float f = l_feat[j * C + c];
+                                v_al += vo[c] * (f * t_cur - s_cur[c] * inv_om);
+                                s_cur[c] += f * w;
+                                part[(6 + c) * N_WI] = vhsum(vo[c] * w);
+                            }
+                            /* the ALPHA_MAX clamp blocks the gradient to power and opac */
+                            const intV grad = use & (raw <= ALPHA_MAX);
+                            const floatV v_power = grad != 0 ? v_al * alpha : (floatV)(0.0f);
+                            const floatV dy_v = (floatV)(dy);
+                            part[0 * N_WI] = vhsum(-v_power * (cop.x * dx + cop.y * dy_v));
+                            part[1 * N_WI] = vhsum(-v_power * (cop.z * dy_v + cop.y * dx));
+                            part[2 * N_WI] = vhsum(-0.5f * v_power * dx * dx);
+                            part[3 * N_WI] = vhsum(-v_power * dx * dy_v);
+                            part[4 * N_WI] = vhsum(-0.5f * v_power * dy_v * dy_v);
+                            part[5 * N_WI] = vhsum(grad != 0 ? v_al * G : (floatV)(0.0f));
+                        }
+                    }
+                }
+                if (!any_used)
+                    for (int k = 0; k < NV; k++) part[k * N_WI] = 0.0f;
+            }
+            T = t_cur;
+            for (int c = 0; c < C; c++) S[c] = s_cur[c];
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+
+        /* one work-item per (entry, value): sum the work-items' slots in order, one global add */
+        for (int t = lid; t < count * NV; t += N_WI) {
+            /* float4 loads into four accumulators (a fixed order; serial scalar adds are
+             * latency-bound on CPUs) */
+            __local const float4 *src = l_part4 + t * (N_WI / 4);
+            float4 s0 = src[0], s1 = src[1], s2 = src[2], s3 = src[3];
+            for (int i = 4; i < N_WI / 4; i += 4) {
+                s0 += src[i]; s1 += src[i + 1]; s2 += src[i + 2]; s3 += src[i + 3];
+            }
+            const float4 s4 = (s0 + s1) + (s2 + s3);
+            const float sum = (s4.x + s4.y) + (s4.z + s4.w);
+            const int j = t / NV, k = t % NV;
+#if DETERMINISTIC
+            v_entry[(base + j) * NV + k] = sum;   /* entry base + j is this group's alone */
+#else
+            if (sum != 0.0f) {
+                const int g = l_gid[j];
+                volatile __global float *dst =
+                    k < 2 ? v_means2d + 2 * g + k :
+                    k < 5 ? v_conic + 3 * g + (k - 2) :
+                    k == 5 ? v_opac + g : v_features + g * C + (k - 6);
+                atomic_add_global_f(dst, sum);
+            }
+#endif
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays and l_part */
+    }
+}
