@@ -14,12 +14,11 @@ Binary little-endian, float32, written atomically.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_open
 from .gaussians import MARGINAL_CULL, TEASH_PERIOD, Gaussians
 from .train.densify import covariance_4d
 
@@ -100,17 +99,7 @@ def export_ply(path, g: Gaussians, t: float) -> int:
     header = "ply\nformat binary_little_endian 1.0\n"
     header += f"comment endowave-cl export at t = {float(t)!r}\n"
     header += f"element vertex {M}\n" + "".join(f"property float {n}\n" for n in names) + "end_header\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(np.ascontiguousarray(data).tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_open(path) as f:
+        f.write(header.encode("ascii"))
+        f.write(np.ascontiguousarray(data).tobytes())
     return M

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,19 +44,10 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
 
 
 def write_png_atomic(path, image: np.ndarray) -> None:
-    """image: [H, W, 3] float in [0, 1] (RGB) or [H, W] uint16/uint8."""
-    import cv2
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """image: [H, W, 3] float RGB in [0, 1], or [H, W] uint8/uint16; written atomically."""
+    from .data.atomic import save_png
     if image.dtype in (np.uint8, np.uint16):
         arr = image
     else:
         arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
-    if arr.ndim == 3:
-        arr = arr[..., ::-1]  # RGB -> BGR for OpenCV
-    ok, buf = cv2.imencode(".png", arr)
-    if not ok:
-        raise EndowaveError(f"{path}: could not encode PNG")
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, path)
+    save_png(path, arr[..., ::-1] if arr.ndim == 3 else arr)  # RGB -> BGR for OpenCV

@@ -14,15 +14,14 @@ Files are named checkpoint_<step:07d>.npz in the run folder (``checkpoint_path``
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
 
+from ..atomic import atomic_open
 from ..errors import EndowaveError
 from ..gaussians import PARAM_NAMES, Gaussians
 
@@ -76,20 +75,8 @@ def save_checkpoint(path, gaussians: Gaussians, adam_state: Optional[Mapping[str
             arrays[f"extra/{k}"] = v
     arrays["extra_json"] = _json_text(plain, "extra", path)
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_open(path) as f:
+        np.savez(f, **arrays)
     return path
 
 
