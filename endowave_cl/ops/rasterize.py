@@ -36,7 +36,7 @@ def _options(C: int):
 # CPU drivers such as PoCL do not vectorise the scalar kernel's per-pixel loop.  Same results.
 ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
 ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
-VEC_WIDTH = 8                               # default lanes (fastest measured on PoCL, 2-core x86)
+VEC_WIDTH = 16                              # default lanes (fastest measured: PoCL, 2-core AVX2 x86)
 VEC_BLOCK_ROWS = 4                          # rows of a culling run-block of the vector variant (BROWS)
 VARIANTS = ("scalar", "vector")
 
