@@ -7,7 +7,7 @@
  * is one work-group of RUNS x TILE work-items (RUNS = TILE / VW runs per row); work-item (lx, ly)
  * owns pixels (tx * TILE + lx * VW + l, ty * TILE + ly), l = 0 .. VW-1.
  *
- * The tile's Gaussians are staged through local memory in batches of BATCH, front to back.  Per
+ * The tile's Gaussians are staged through local memory in batches of FWD_BATCH, front to back.  Per
  * lane the compositing is exactly that of rasterize.cl (same helper functions, same operation
  * order; vexp_nonpos equals exp_nonpos bit for bit): skip power > 0, alpha = min(ALPHA_MAX, opac G),
  * skip alpha < ALPHA_MIN, stop before a Gaussian that would bring T below T_STOP.  Lanes are masked
@@ -19,19 +19,63 @@
  * pixel centres; a work-item walks its block's list, skips entries whose box misses its row, and
  * masks lanes whose power is below the skip threshold.  Every work-item reaches every barrier.
  *
- * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>.
+ * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>,
+ * -DBROWS (rows of a culling run-block).
  */
 #include "common.h"
 #include "vexp.h"
 #define RASTERIZE_HELPERS_ONLY
 #include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box */
 
+/* Per-Gaussian record, written once per call by rasterize_vec_prep (one Gaussian per work-item)
+ * and gathered per tile entry by the rasterize_vec kernels: one contiguous read instead of four
+ * scattered arrays, and the skip threshold (a log) and cull box (two sqrt) computed once per Gaussian
+ * instead of once per tile entry.  REC4 float4 per Gaussian:
+ *   [0] (a, b, c, opac)   [1] cull box (xmin, xmax, ymin, ymax)   [2] (mean x, mean y, thr, 0)
+ *   [3 ..] features[0 .. C-1], zero-padded to a multiple of 4. */
+#define REC4 (3 + (C + 3) / 4)
+
+inline void stage_gaussian(__global const float4 *rec, int g, int j, __local float2 *l_mean,
+                           __local float4 *l_cop, __local float *l_feat, __local float *l_thr,
+                           __local float4 *l_box) {
+    __global const float4 *r = rec + g * REC4;
+    l_cop[j] = r[0];
+    l_box[j] = r[1];
+    const float4 m = r[2];
+    l_mean[j] = m.xy;
+    l_thr[j] = m.z;
+    __global const float *f = (__global const float *)(r + 3);
+    for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
+}
+
+#ifndef RASTERIZE_VEC_HELPERS_ONLY
+__kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
+                                 __global const float *conic,      /* [N, 3] (a, b, c) */
+                                 __global const float *opac,       /* [N] */
+                                 __global const float *features,   /* [N, C] */
+                                 const int n,
+                                 __global float4 *rec)             /* [N, REC4] */
+{
+    const int g = get_global_id(0);
+    if (g >= n) return;
+    const float2 mean = means2d[g];
+    const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
+    const float thr = skip_threshold(cop.w);
+    __global float4 *r = rec + g * REC4;
+    r[0] = cop;
+    r[1] = cull_box(mean, cop, thr);
+    r[2] = (float4)(mean.x, mean.y, thr, 0.0f);
+    __global float *f = (__global float *)(r + 3);
+    for (int c = 0; c < 4 * (REC4 - 3); c++) f[c] = c < C ? features[g * C + c] : 0.0f;
+}
+#endif
+
 #if (TILE % VW) != 0
 #error "VW must divide TILE"
 #endif
 #define RUNS (TILE / VW)              /* work-items per tile row */
 #define N_WI (RUNS * TILE)            /* work-items per group */
-#define BATCH TILE_PIXELS             /* Gaussians per local-memory batch (indices fit a uchar) */
+#define FWD_BATCH TILE_PIXELS         /* Gaussians per local-memory batch (indices fit a uchar) */
 #ifndef BROWS
 #define BROWS 4                       /* rows of a run-block: VW x BROWS pixels share a list */
 #endif
@@ -40,11 +84,9 @@
 #endif
 #define N_BLK (RUNS * (TILE / BROWS)) /* run-blocks per tile (<= N_WI) */
 
+#ifndef RASTERIZE_VEC_HELPERS_ONLY
 __kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
-void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
-                   __global const float *conic,      /* [N, 3] (a, b, c) */
-                   __global const float *opac,       /* [N] */
-                   __global const float *features,   /* [N, C] */
+void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                    __global const int *sorted_values,/* [M] Gaussian ids, tile-major then depth */
                    __global const int2 *tile_ranges, /* [n_tiles] (start, end) */
                    const int width, const int height, const int tiles_x,
@@ -53,12 +95,12 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
                    __global float *t_final,          /* [H, W] */
                    __global int *last_out)           /* [H, W] */
 {
-    __local float2 l_mean[BATCH];
-    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
-    __local float l_feat[BATCH * C];
-    __local float l_thr[BATCH];                  /* power threshold of the early skip */
-    __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
-    __local uchar l_list[N_BLK * BATCH];         /* per run-block lists of batch indices */
+    __local float2 l_mean[FWD_BATCH];
+    __local float4 l_cop[FWD_BATCH];                 /* (a, b, c, opac) */
+    __local float l_feat[FWD_BATCH * C];
+    __local float l_thr[FWD_BATCH];                  /* power threshold of the early skip */
+    __local float4 l_box[FWD_BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
+    __local uchar l_list[N_BLK * FWD_BATCH];         /* per run-block lists of batch indices */
     __local int l_len[N_BLK];
     __local int l_done[2];                       /* done-work-item counters, used alternately */
 
@@ -81,7 +123,7 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
 
     const int2 range = tile_ranges[tile];
     const int n_entries = range.y - range.x;
-    const int n_batches = (n_entries + BATCH - 1) / BATCH;
+    const int n_batches = (n_entries + FWD_BATCH - 1) / FWD_BATCH;
 
     floatV T = (floatV)(1.0f);
     floatV acc[C];
@@ -99,24 +141,15 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
         barrier(CLK_LOCAL_MEM_FENCE);
         if (l_done[b & 1] == N_WI) break;
 
-        const int base = range.x + b * BATCH;
-        const int count = min(BATCH, range.y - base);
-        for (int j = lid; j < count; j += N_WI) {
-            const int g = sorted_values[base + j];
-            const float2 mean = means2d[g];
-            const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
-            l_mean[j] = mean;
-            l_cop[j] = cop;
-            for (int c = 0; c < C; c++) l_feat[j * C + c] = features[g * C + c];
-            const float thr = skip_threshold(cop.w);
-            l_thr[j] = thr;
-            l_box[j] = cull_box(mean, cop, thr);
-        }
+        const int base = range.x + b * FWD_BATCH;
+        const int count = min(FWD_BATCH, range.y - base);
+        for (int j = lid; j < count; j += N_WI)
+            stage_gaussian(rec, sorted_values[base + j], j, l_mean, l_cop, l_feat, l_thr, l_box);
         barrier(CLK_LOCAL_MEM_FENCE);
         if (lid < N_BLK) {   /* list of the batch entries whose cull box reaches run-block lid */
             const float bx0 = (float)(tx * TILE + (lid % RUNS) * VW) + 0.5f, bx1 = bx0 + (float)(VW - 1);
             const float by0 = (float)(ty * TILE + (lid / RUNS) * BROWS) + 0.5f, by1 = by0 + (float)(BROWS - 1);
-            __local uchar *list = l_list + lid * BATCH;
+            __local uchar *list = l_list + lid * FWD_BATCH;
             int n = 0;
             for (int j = 0; j < count; j++) {
                 const float4 bb = l_box[j];
@@ -127,7 +160,7 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
         barrier(CLK_LOCAL_MEM_FENCE);
 
         const int n_mine = l_len[my_blk];
-        __local const uchar *mine = l_list + my_blk * BATCH;
+        __local const uchar *mine = l_list + my_blk * FWD_BATCH;
         if (!VALL(done)) {
             /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
@@ -157,7 +190,7 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
                 const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
                 for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
                 t_cur = use != 0 ? t_next : t_cur;
-                last_cur = use != 0 ? (intV)(b * BATCH + j + 1) : last_cur;
+                last_cur = use != 0 ? (intV)(b * FWD_BATCH + j + 1) : last_cur;
                 if (VALL(done_cur)) break;
             }
             T = t_cur;
@@ -185,3 +218,4 @@ void rasterize_vec(__global const float2 *means2d,   /* [N, 2] */
         }
     }
 }
+#endif  /* RASTERIZE_VEC_HELPERS_ONLY */

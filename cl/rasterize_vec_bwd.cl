@@ -21,17 +21,12 @@
  */
 #include "common.h"
 #include "vexp.h"
-#define RASTERIZE_HELPERS_ONLY
-#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box */
+#define RASTERIZE_VEC_HELPERS_ONLY
+#include "rasterize_vec.cl"   /* REC4, stage_gaussian; gauss_power, skip_threshold, cull_box, ... */
 
 #ifndef DETERMINISTIC
 #define DETERMINISTIC 0
 #endif
-#if (TILE % VW) != 0
-#error "VW must divide TILE"
-#endif
-#define RUNS (TILE / VW)       /* work-items per tile row */
-#define N_WI (RUNS * TILE)     /* work-items per group */
 #define NV (6 + C)             /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
 #ifndef BATCH
 #define BATCH 16
@@ -41,10 +36,7 @@
 #endif
 
 __kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
-void rasterize_vec_bwd(__global const float2 *means2d,   /* [N, 2] */
-                       __global const float *conic,      /* [N, 3] */
-                       __global const float *opac,       /* [N] */
-                       __global const float *features,   /* [N, C] */
+void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                        __global const int *sorted_values,/* [M] */
                        __global const int2 *tile_ranges, /* [n_tiles] */
                        const int width, const int height, const int tiles_x,
@@ -114,14 +106,7 @@ void rasterize_vec_bwd(__global const float2 *means2d,   /* [N, 2] */
         for (int j = lid; j < count; j += N_WI) {
             const int g = sorted_values[base + j];
             l_gid[j] = g;
-            const float2 mean = means2d[g];
-            const float4 cop = (float4)(conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opac[g]);
-            l_mean[j] = mean;
-            l_cop[j] = cop;
-            for (int c = 0; c < C; c++) l_feat[j * C + c] = features[g * C + c];
-            const float thr = skip_threshold(cop.w);
-            l_thr[j] = thr;
-            l_box[j] = cull_box(mean, cop, thr);
+            stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 

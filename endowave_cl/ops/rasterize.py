@@ -165,15 +165,39 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     if raster_variant(rt) == "vector":
         _check_local(rt, fwd_vec_local_bytes(C), "rasterize", C)
         vw = vec_width()
-        k = rt.kernel("rasterize_vec.cl", "rasterize_vec", _options(C) + [f"-DVW={vw}", f"-DBROWS={VEC_BLOCK_ROWS}"])
+        opts = _vec_options(C)
+        rec = _vec_records(rt, means2d, conic, opac, features, opts)
+        k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
         gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
-    else:
-        _check_local(rt, fwd_local_bytes(C), "rasterize", C)
-        k = rt.kernel("rasterize.cl", "rasterize", _options(C))
+        k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
+          np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+        return res
+    _check_local(rt, fwd_local_bytes(C), "rasterize", C)
+    k = rt.kernel("rasterize.cl", "rasterize", _options(C))
     k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
       _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
       res.out.data, res.alpha.data, res.T_final.data, res.last.data)
     return res
+
+
+def _vec_options(C: int):
+    return _options(C) + [f"-DVW={vec_width()}", f"-DBROWS={VEC_BLOCK_ROWS}"]
+
+
+def _vec_records(rt, means2d, conic, opac, features, opts):
+    """[N, REC4] float4 per-Gaussian records of the vector kernels (rasterize_vec_prep, REC4 in
+    cl/rasterize_vec.cl), or None for N = 0."""
+    import pyopencl.array as cla
+    N, C = (int(s) for s in features.shape)
+    if N == 0:
+        return None
+    rec4 = 3 + (C + 3) // 4
+    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32)
+    kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
+    wg = 64
+    kp(rt.queue, (round_up(N, wg),), (wg,), means2d.data, conic.data, opac.data, features.data,
+       np.int32(N), rec.data)
+    return rec
 
 
 def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
@@ -207,16 +231,23 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     if raster_variant(rt) == "vector":
         vw, batch = vec_width(), vec_bwd_batch(rt, C)
         _check_local(rt, vec_bwd_local_bytes(C, batch), "rasterize_bwd", C)
-        k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd", opts + [f"-DVW={vw}", f"-DBATCH={batch}"])
+        rec = _vec_records(rt, means2d, conic, opac, features, _vec_options(C))
+        k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd",
+                      _vec_options(C) + [f"-DDETERMINISTIC={int(det)}", f"-DBATCH={batch}"])
         gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
+        k(q, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
+          np.int32(width), np.int32(height), np.int32(tiles_x),
+          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+          _buf(rt, v_entry))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
-    k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
-      tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
-      raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-      grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-      _buf(rt, v_entry))
+        k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
+          tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+          _buf(rt, v_entry))
     if det:
         rect, depth = deterministic
         assert rect.shape == (N, 4) and rect.dtype == np.int32 and depth.shape == (N,)
