@@ -10,9 +10,10 @@
  * exp_nonpos bit for bit), so the same Gaussians count as contributors.
  *
  * Reduction, without atomics in local memory and without a barrier per Gaussian: for each entry j
- * of the batch each work-item sums its lanes' NV gradient terms (vhsum: fixed order) and stores
- * them to its own slot l_part[j][k][work-item] (zeros where it has nothing); after the batch, one
- * work-item per (j, k) sums the N_WI slots in work-item order and adds the total to the global
+ * of the batch each work-item whose lanes use it sums their NV gradient terms (vhsum: fixed order)
+ * and stores them to its own slot l_part[j][k][work-item] (the other slots hold zeros); after the
+ * batch, one work-item per (j, k) sums the N_WI slots in work-item order, zeroes them for the next
+ * batch, and adds the total to the global
  * gradient with one atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1, stores it to
  * v_entry[entry] for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
  *
@@ -94,6 +95,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
 
     const int2 range = tile_ranges[tile];
     if (lid == 0) l_max_last = 0;
+    for (int t = lid; t < BATCH * NV * N_WI / 4; t += N_WI) l_part4[t] = (float4)(0.0f);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (max_last_mine > 0) atomic_max(&l_max_last, max_last_mine);
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -117,7 +119,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             for (int j = count - 1; j >= 0; j--) {
                 __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
                 const float4 bb = l_box[j];
-                bool any_used = false;
                 if (bb.x <= px1 && bb.y >= px0 && bb.z <= py && bb.w >= py) {
                     const float4 cop = l_cop[j];
                     const float2 mean = l_mean[j];
@@ -131,8 +132,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                         const floatV raw = cop.w * G;
                         const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
                         use &= alpha >= ALPHA_MIN;
-                        any_used = VANY(use);
-                        if (any_used) {
+                        if (VANY(use)) {
                             const floatV inv_om = 1.0f / (1.0f - alpha);
                             t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
                             const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
@@ -156,8 +156,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                         }
                     }
                 }
-                if (!any_used)
-                    for (int k = 0; k < NV; k++) part[k * N_WI] = 0.0f;
             }
             T = t_cur;
             for (int c = 0; c < C; c++) S[c] = s_cur[c];
@@ -168,11 +166,12 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         for (int t = lid; t < count * NV; t += N_WI) {
             /* float4 loads into four accumulators (a fixed order; serial scalar adds are
              * latency-bound on CPUs) */
-            __local const float4 *src = l_part4 + t * (N_WI / 4);
+            __local float4 *src = l_part4 + t * (N_WI / 4);
             float4 s0 = src[0], s1 = src[1], s2 = src[2], s3 = src[3];
             for (int i = 4; i < N_WI / 4; i += 4) {
                 s0 += src[i]; s1 += src[i + 1]; s2 += src[i + 2]; s3 += src[i + 3];
             }
+            for (int i = 0; i < N_WI / 4; i++) src[i] = (float4)(0.0f);   /* zeros for the next batch */
             const float4 s4 = (s0 + s1) + (s2 + s3);
             const float sum = (s4.x + s4.y) + (s4.z + s4.w);
             const int j = t / NV, k = t % NV;
