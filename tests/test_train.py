@@ -103,3 +103,27 @@ def test_nan_step_is_caught_and_not_applied(rt, tiny_scene, tmp_path):
     after = download(tr.params)
     np.testing.assert_array_equal(after.means, before.means)   # the step was not applied
     assert tr.step == 0
+
+
+def test_eval_render_export_commands(rt, tiny_scene, tmp_path):
+    run = tmp_path / "run"
+    r = _cli("train", str(tiny_scene), "--out", str(run), "--iterations", "20", "--quiet", "--no-flow",
+             "--set", "init_points=800")
+    assert r.returncode == 0, r.stderr
+    assert "final test PSNR" in r.stdout
+    r = _cli("eval", str(run), "--fps-runs", "2")
+    assert r.returncode == 0, r.stderr
+    import json
+    m = json.loads((run / "eval.json").read_text())
+    assert {"psnr", "psnr_masked", "ssim", "lpips", "fps"} <= set(m) and m["fps"] > 0
+    from endowave_cl.lpips import lpips_available
+    assert (m["lpips"] is None) != lpips_available()
+    r = _cli("render", str(run), "--no-video")
+    assert r.returncode == 0, r.stderr
+    assert len(list((run / "render" / "frames").glob("*.png"))) == 2   # frames 1 and 9 of 10
+    assert len(list((run / "render" / "depth").glob("*.png"))) == 2
+    r = _cli("export", str(run), "--time", "0.5", "--out", str(tmp_path / "m.ply"))
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "m.ply").read_bytes().startswith(b"ply\n")
+    r = _cli("eval", str(tmp_path / "nowhere"))
+    assert r.returncode == 1 and "not a training run" in r.stderr

@@ -9,8 +9,6 @@ training an existing run folder resumes from its newest checkpoint (--restart st
 """
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 DEMO_SIZE = (160, 128, 24)       # width, height, frames of the built-in demo scene
@@ -85,10 +83,6 @@ def run(args) -> int:
         cfg.use_depth = False
     rt = get_runtime(getattr(args, "device", None))
     print(f"device: {rt.describe()}")
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "config.json.tmp"
-    tmp.write_text(json.dumps({"scene": str(scene_path.resolve()), **cfg.to_dict()}, indent=1))
-    os.replace(tmp, out / "config.json")
     losses = ["rgb"] + [n for n, on in (("depth", cfg.use_depth), ("flow", cfg.use_flow),
                                          ("wavelet", cfg.use_wavelet)) if on]
     trainer = Trainer(scene, cfg, out, rt, resume=not args.restart)

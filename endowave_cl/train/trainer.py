@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
+from ..atomic import write_bytes_atomic
 from ..errors import EndowaveError
 from ..gaussians import Gaussians, download, upload
 from ..render import DEPTH, FLOW, RGB, render, render_backward
@@ -68,6 +68,9 @@ class Trainer:
             torch.set_num_threads(1)
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        # the run folder describes itself: render / eval / export read this
+        write_bytes_atomic(self.run_dir / "config.json", json.dumps(
+            {"scene": str(Path(scene.path).resolve()), **cfg.to_dict()}, indent=1).encode())
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.history: List[Dict[str, float]] = []
@@ -283,7 +286,6 @@ class Trainer:
         self.save()
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds})
-        tmp = self.run_dir / "train_log.json.tmp"
-        tmp.write_text(json.dumps({"final": metrics, "history": self.history}, indent=1))
-        os.replace(tmp, self.run_dir / "train_log.json")
+        write_bytes_atomic(self.run_dir / "train_log.json",
+                           json.dumps({"final": metrics, "history": self.history}, indent=1).encode())
         return metrics
