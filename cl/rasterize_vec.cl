@@ -3,9 +3,10 @@
  *
  * Same results and rules as rasterize.cl (the GPU path, one pixel per work-item), but each
  * work-item composites a horizontal run of VW pixels held in the lanes of floatVW vectors: PoCL does
- * not vectorise the per-pixel loop of the scalar kernel, so the SIMD is written out here.  A tile
- * is one work-group of RUNS x TILE work-items (RUNS = TILE / VW runs per row); work-item (lx, ly)
- * owns pixels (tx * TILE + lx * VW + l, ty * TILE + ly), l = 0 .. VW-1.
+ * not vectorise the per-pixel loop of the scalar kernel, so the SIMD is written out here.  Each
+ * work-item owns a block of BW x BH = VW pixels (lane l: pixel (l % BW, l / BW) of the block); a
+ * tile is one work-group of BX x BY = (TILE / BW) x (TILE / BH) work-items, work-item (lx, ly) owning
+ * the block at pixel (tx * TILE + lx * BW, ty * TILE + ly * BH).
  *
  * The tile's Gaussians are staged through local memory in batches of FWD_BATCH, front to back.  Per
  * lane the compositing is exactly that of rasterize.cl (same helper functions, same operation
@@ -14,13 +15,13 @@
  * (vector ?:): a lane that skips or is done adds nothing; the work-item leaves the batch once all its
  * lanes are done, and the group stops loading batches once every work-item is done.
  *
- * Culling (exact, as in rasterize.cl): per batch, each run-block (VW x BROWS pixels: BROWS runs one
+ * Culling (exact, as in rasterize.cl): per batch, each culling block (BROWS work-item blocks one
  * above the other) gets the ordered list of the batch's Gaussians whose cull box reaches one of its
- * pixel centres; a work-item walks its block's list, skips entries whose box misses its row, and
+ * pixel centres; a work-item walks its list, skips entries whose box misses its block's rows, and
  * masks lanes whose power is below the skip threshold.  Every work-item reaches every barrier.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>,
- * -DBROWS (rows of a culling run-block).
+ * -DBW (block width, divides VW), -DBROWS (work-item block rows per culling list).
  */
 #include "common.h"
 #include "vexp.h"
@@ -70,22 +71,40 @@ __kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
 }
 #endif
 
-#if (TILE % VW) != 0
-#error "VW must divide TILE"
+/* A work-item's VW pixels form a BW x BH block (lane l: pixel (l % BW, l / BW) of the block). */
+#ifndef BW
+#define BW VW
 #endif
-#define RUNS (TILE / VW)              /* work-items per tile row */
-#define N_WI (RUNS * TILE)            /* work-items per group */
+#define BH (VW / BW)
+#if (TILE % BW) != 0 || (VW % BW) != 0 || (TILE % BH) != 0
+#error "BW must divide VW and TILE, VW / BW must divide TILE"
+#endif
+#define BX (TILE / BW)                /* work-items per row of blocks */
+#define BY (TILE / BH)                /* rows of blocks */
+#define N_WI (BX * BY)                /* work-items per group */
 #define FWD_BATCH TILE_PIXELS         /* Gaussians per local-memory batch (indices fit a uchar) */
 #ifndef BROWS
-#define BROWS 4                       /* rows of a run-block: VW x BROWS pixels share a list */
+#define BROWS 4                       /* rows of blocks that share a culling list */
 #endif
-#if (TILE % BROWS) != 0
-#error "BROWS must divide TILE"
+#if (BY % BROWS) != 0
+#error "BROWS must divide TILE / BH"
 #endif
-#define N_BLK (RUNS * (TILE / BROWS)) /* run-blocks per tile (<= N_WI) */
+#define N_BLK (BX * (BY / BROWS))     /* culling lists per tile (<= N_WI) */
+
+/* Lane geometry: pixel offsets of the lanes inside the block. */
+inline intV lane_dx(void) {
+    int v[VW];
+    for (int l = 0; l < VW; l++) v[l] = l % BW;
+    return vloadV(0, v);
+}
+inline intV lane_dy(void) {
+    int v[VW];
+    for (int l = 0; l < VW; l++) v[l] = l / BW;
+    return vloadV(0, v);
+}
 
 #ifndef RASTERIZE_VEC_HELPERS_ONLY
-__kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
+__kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                    __global const int *sorted_values,/* [M] Gaussian ids, tile-major then depth */
                    __global const int2 *tile_ranges, /* [n_tiles] (start, end) */
@@ -100,26 +119,24 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
     __local float l_feat[FWD_BATCH * C];
     __local float l_thr[FWD_BATCH];                  /* power threshold of the early skip */
     __local float4 l_box[FWD_BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
-    __local uchar l_list[N_BLK * FWD_BATCH];         /* per run-block lists of batch indices */
+    __local uchar l_list[N_BLK * FWD_BATCH];     /* per culling-block lists of batch indices */
     __local int l_len[N_BLK];
     __local int l_done[2];                       /* done-work-item counters, used alternately */
 
     const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * RUNS + lx;
+    const int lid = ly * BX + lx;
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int tile = ty * tiles_x + tx;
-    const int ix0 = tx * TILE + lx * VW;         /* first pixel of the run */
-    const int iy = ty * TILE + ly;
-    const float px0 = (float)ix0 + 0.5f, py = (float)iy + 0.5f;
-    const int my_blk = (ly / BROWS) * RUNS + lx;
+    const int ix0 = tx * TILE + lx * BW, iy0 = ty * TILE + ly * BH;   /* first pixel of the block */
+    const float px0 = (float)ix0 + 0.5f, px1 = px0 + (float)(BW - 1);   /* block's pixel centres */
+    const float py0 = (float)iy0 + 0.5f, py1 = py0 + (float)(BH - 1);
+    const int my_blk = (ly / BROWS) * BX + lx;
 
-    /* lane offsets 0 .. VW-1 */
-    int lane_i[VW];
-    for (int l = 0; l < VW; l++) lane_i[l] = l;
-    const intV lane = vloadV(0, lane_i);
-    const floatV px = (floatV)(px0) + convert_floatV(lane);
+    const intV ldx = lane_dx(), ldy = lane_dy();
+    const floatV px = (floatV)(px0) + convert_floatV(ldx);
+    const floatV py = (floatV)(py0) + convert_floatV(ldy);
     /* lanes outside the image start done: they write nothing */
-    const intV inside = (lane + ix0 < width) & (iy < height ? (intV)(-1) : (intV)(0));
+    const intV inside = (ldx + ix0 < width) & (ldy + iy0 < height);
 
     const int2 range = tile_ranges[tile];
     const int n_entries = range.y - range.x;
@@ -146,9 +163,10 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
         for (int j = lid; j < count; j += N_WI)
             stage_gaussian(rec, sorted_values[base + j], j, l_mean, l_cop, l_feat, l_thr, l_box);
         barrier(CLK_LOCAL_MEM_FENCE);
-        if (lid < N_BLK) {   /* list of the batch entries whose cull box reaches run-block lid */
-            const float bx0 = (float)(tx * TILE + (lid % RUNS) * VW) + 0.5f, bx1 = bx0 + (float)(VW - 1);
-            const float by0 = (float)(ty * TILE + (lid / RUNS) * BROWS) + 0.5f, by1 = by0 + (float)(BROWS - 1);
+        if (lid < N_BLK) {   /* list of the batch entries whose cull box reaches culling block lid */
+            const float bx0 = (float)(tx * TILE + (lid % BX) * BW) + 0.5f, bx1 = bx0 + (float)(BW - 1);
+            const float by0 = (float)(ty * TILE + (lid / BX) * BROWS * BH) + 0.5f;
+            const float by1 = by0 + (float)(BROWS * BH - 1);
             __local uchar *list = l_list + lid * FWD_BATCH;
             int n = 0;
             for (int j = 0; j < count; j++) {
@@ -170,14 +188,14 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
             intV done_cur = done;
             for (int i = 0; i < n_mine; i++) {
                 const int j = mine[i];
-                const float4 bb = l_box[j];   /* the block list tested x; this row's y: */
-                if (!(bb.z <= py && bb.w >= py)) continue;
+                const float4 bb = l_box[j];   /* the list tested x; this block's rows: */
+                if (!(bb.z <= py1 && bb.w >= py0)) continue;
                 const float4 cop = l_cop[j];
                 const float2 mean = l_mean[j];
                 const floatV dx = (floatV)(mean.x) - px;
-                const float dy = mean.y - py;
+                const floatV dy = (floatV)(mean.y) - py;
                 /* gauss_power, lane for lane */
-                const floatV power = -0.5f * (cop.x * dx * dx + (floatV)(cop.z * dy * dy)) - cop.y * dx * dy;
+                const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
                 intV use = ~done_cur & (power <= 0.0f) & (power >= l_thr[j]);
                 if (!VANY(use)) continue;
                 const floatV raw = cop.w * vexp_nonpos(power);
@@ -210,7 +228,7 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
     vstoreV(inside, 0, in_l);
     for (int l = 0; l < VW; l++) {
         if (in_l[l]) {
-            const int p = iy * width + ix0 + l;
+            const int p = (iy0 + l / BW) * width + ix0 + l % BW;
             for (int c = 0; c < C; c++) out[p * C + c] = acc_l[c * VW + l];
             alpha_out[p] = 1.0f - T_l[l];
             t_final[p] = T_l[l];

@@ -2,8 +2,9 @@
  * "rasterize").  OpenCL C 1.2.
  *
  * Same maths as rasterize_bwd.cl (the GPU path; see its header for the formulas), with the work
- * layout of rasterize_vec.cl: one work-group of RUNS x TILE work-items per tile, work-item (lx, ly)
- * owns the VW pixels (tx * TILE + lx * VW + l, ty * TILE + ly) in the lanes of floatVW vectors.
+ * layout of rasterize_vec.cl: one work-group of BX x BY work-items per tile, work-item (lx, ly)
+ * owns a block of BW x BH = VW pixels (lane l: pixel (l % BW, l / BW) of the block at
+ * (tx * TILE + lx * BW, ty * TILE + ly * BH)) in the lanes of floatVW vectors.
  * The group walks the tile's list back to front, from the tile's largest `last` down to entry 0, in
  * batches of BATCH Gaussians staged in local memory; a lane takes part for the entries before its
  * own `last`.  Per lane the skip tests are those of the forward pass (same helpers, vexp_nonpos ==
@@ -36,7 +37,7 @@
 #error "the reduction reads N_WI / 4 float4 in groups of four"
 #endif
 
-__kernel __attribute__((reqd_work_group_size(RUNS, TILE, 1)))
+__kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                        __global const int *sorted_values,/* [M] */
                        __global const int2 *tile_ranges, /* [n_tiles] */
@@ -62,30 +63,29 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local int l_max_last;
 
     const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * RUNS + lx;
+    const int lid = ly * BX + lx;
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int tile = ty * tiles_x + tx;
-    const int ix0 = tx * TILE + lx * VW;         /* first pixel of the run */
-    const int iy = ty * TILE + ly;
-    const float px0 = (float)ix0 + 0.5f, py = (float)iy + 0.5f;
-    const float px1 = px0 + (float)(VW - 1);     /* last pixel centre of the run */
+    const int ix0 = tx * TILE + lx * BW, iy0 = ty * TILE + ly * BH;   /* first pixel of the block */
+    const float px0 = (float)ix0 + 0.5f, px1 = px0 + (float)(BW - 1);   /* block's pixel centres */
+    const float py0 = (float)iy0 + 0.5f, py1 = py0 + (float)(BH - 1);
 
     /* per-lane inputs; lanes outside the image: T_final 1, last 0, no cotangent */
-    float tf_l[VW], va_l[VW], lane_l[VW], vo_l[C * VW];
+    float tf_l[VW], va_l[VW], vo_l[C * VW];
     int last_l[VW];
     int max_last_mine = 0;
     for (int l = 0; l < VW; l++) {
-        const int ix = ix0 + l;
+        const int ix = ix0 + l % BW, iy = iy0 + l / BW;
         const bool in = ix < width && iy < height;
         const int p = iy * width + ix;
         tf_l[l] = in ? t_final[p] : 1.0f;
         last_l[l] = in ? last_in[p] : 0;
         va_l[l] = in ? v_alpha[p] : 0.0f;
         for (int c = 0; c < C; c++) vo_l[c * VW + l] = in ? v_out[p * C + c] : 0.0f;
-        lane_l[l] = (float)l;
         max_last_mine = max(max_last_mine, last_l[l]);
     }
-    const floatV px = (floatV)(px0) + vloadV(0, lane_l);
+    const floatV px = (floatV)(px0) + convert_floatV(lane_dx());
+    const floatV py = (floatV)(py0) + convert_floatV(lane_dy());
     const floatV T_fin = vloadV(0, tf_l);
     const intV last = vloadV(0, last_l);
     const floatV va_tf = vloadV(0, va_l) * T_fin;    /* v_alpha T_final */
@@ -119,13 +119,12 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             for (int j = count - 1; j >= 0; j--) {
                 __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
                 const float4 bb = l_box[j];
-                if (bb.x <= px1 && bb.y >= px0 && bb.z <= py && bb.w >= py) {
+                if (bb.x <= px1 && bb.y >= px0 && bb.z <= py1 && bb.w >= py0) {
                     const float4 cop = l_cop[j];
                     const float2 mean = l_mean[j];
                     const floatV dx = (floatV)(mean.x) - px;
-                    const float dy = mean.y - py;
-                    const floatV power =
-                        -0.5f * (cop.x * dx * dx + (floatV)(cop.z * dy * dy)) - cop.y * dx * dy;
+                    const floatV dy = (floatV)(mean.y) - py;
+                    const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
                     intV use = ((intV)(b * BATCH + j) < last) & (power <= 0.0f) & (power >= l_thr[j]);
                     if (VANY(use)) {
                         const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
@@ -146,12 +145,11 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
                             const intV grad = use & (raw <= ALPHA_MAX);
                             const floatV v_power = grad != 0 ? v_al * alpha : (floatV)(0.0f);
-                            const floatV dy_v = (floatV)(dy);
-                            part[0 * N_WI] = vhsum(-v_power * (cop.x * dx + cop.y * dy_v));
-                            part[1 * N_WI] = vhsum(-v_power * (cop.z * dy_v + cop.y * dx));
+                            part[0 * N_WI] = vhsum(-v_power * (cop.x * dx + cop.y * dy));
+                            part[1 * N_WI] = vhsum(-v_power * (cop.z * dy + cop.y * dx));
                             part[2 * N_WI] = vhsum(-0.5f * v_power * dx * dx);
-                            part[3 * N_WI] = vhsum(-v_power * dx * dy_v);
-                            part[4 * N_WI] = vhsum(-0.5f * v_power * dy_v * dy_v);
+                            part[3 * N_WI] = vhsum(-v_power * dx * dy);
+                            part[4 * N_WI] = vhsum(-0.5f * v_power * dy * dy);
                             part[5 * N_WI] = vhsum(grad != 0 ? v_al * G : (floatV)(0.0f));
                         }
                     }

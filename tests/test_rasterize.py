@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from conftest import small, oclgrind_active
-from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_WIDTH, VARIANTS, accumulate_densify_stats,
-                                       rasterize, rasterize_bwd)
+from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_BLOCK_W, ENV_VEC_WIDTH, VARIANTS,
+                                       accumulate_densify_stats, rasterize, rasterize_bwd)
 from endowave_cl.reference.binning import bin_gaussians_ref, sort_pairs_ref, tile_grid, tile_ranges_ref
 from endowave_cl.reference.rasterize import (ALPHA_MAX, accumulate_densify_stats_ref, rasterize_bwd_ref,
                                              rasterize_dense_ref, rasterize_ref)
@@ -189,12 +189,17 @@ def test_forward_vector_saturated_tiny_oclgrind(rt, monkeypatch):
     check_fwd(r, ref_fwd(sc))
 
 
-@pytest.mark.parametrize("vw", [4, 8])
+# (lanes, block width) of the vector variant other than the default (VEC_WIDTH, VEC_BLOCK_W)
+VEC_SHAPES = [(4, 4), (8, 4), (8, 8), (16, 8), (16, 16)]
+
+
+@pytest.mark.parametrize("vw,bw", VEC_SHAPES)
 @pytest.mark.parametrize("case", [FWD_CASES[0], FWD_CASES[1]])
-def test_forward_vector_widths(rt, monkeypatch, vw, case):
-    """Other lane counts of the vector variant (the default is VEC_WIDTH)."""
+def test_forward_vector_widths(rt, monkeypatch, vw, bw, case):
+    """Other lane counts and pixel-block shapes of the vector variant."""
     monkeypatch.setenv(ENV_VARIANT, "vector")
     monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
+    monkeypatch.setenv(ENV_VEC_BLOCK_W, str(bw))
     seed, n, w, h, C, sigma, op = case
     sc = make_scene(seed, n, w, h, C, sigma, op)
     _, r = run_fwd(rt, sc)
@@ -236,12 +241,13 @@ BWD_CASES = [
 ]
 
 
-@pytest.mark.parametrize("vw", [4, 8])
+@pytest.mark.parametrize("vw,bw", VEC_SHAPES)
 @pytest.mark.parametrize("case", [BWD_CASES[1], BWD_CASES[4]])
-def test_adjoint_vector_widths(rt, monkeypatch, vw, case):
-    """Other lane counts of the vector variant, both reduction modes."""
+def test_adjoint_vector_widths(rt, monkeypatch, vw, bw, case):
+    """Other lane counts and pixel-block shapes of the vector variant, both reduction modes."""
     monkeypatch.setenv(ENV_VARIANT, "vector")
     monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
+    monkeypatch.setenv(ENV_VEC_BLOCK_W, str(bw))
     seed, n, w, h, C, sigma, op = case
     sc = make_scene(seed, n, w, h, C, sigma, op)
     for det in (False, True):

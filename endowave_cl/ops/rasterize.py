@@ -37,7 +37,10 @@ def _options(C: int):
 ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
 ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
 VEC_WIDTH = 16                              # default lanes (fastest measured: PoCL, 2-core AVX2 x86)
-VEC_BLOCK_ROWS = 4                          # rows of a culling run-block of the vector variant (BROWS)
+ENV_VEC_BLOCK_W = "ENDOWAVE_RASTER_BW"     # width of a work-item's pixel block (divides the lanes)
+VEC_BLOCK_W = 4                             # default: 4 x 4 pixel blocks for 16 lanes (squarest: fewest
+                                            # Gaussian-block pairs walked)
+VEC_BLOCK_ROWS = 4                          # rows of blocks sharing a culling list (BROWS)
 VARIANTS = ("scalar", "vector")
 
 
@@ -59,6 +62,26 @@ def vec_width() -> int:
     return w
 
 
+def vec_block() -> tuple:
+    """(BW, BH): a work-item's pixel block in the vector variant, BW * BH = vec_width()."""
+    vw = vec_width()
+    bw = int(os.environ.get(ENV_VEC_BLOCK_W, "") or min(VEC_BLOCK_W, vw))
+    if vw % bw or bw > TILE:
+        raise ValueError(f"{ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
+    bh = vw // bw
+    if TILE // bh < VEC_BLOCK_ROWS:
+        raise ValueError(f"block {bw} x {bh}: at most {TILE // VEC_BLOCK_ROWS} rows")
+    return bw, bh
+
+
+def _vec_grid(width: int, height: int):
+    """Global and local sizes of the vector kernels: (TILE / BW) x (TILE / BH) work-items per tile."""
+    bw, bh = vec_block()
+    tiles_x, tiles_y, _, _ = _grid(width, height)
+    lsize = (TILE // bw, TILE // bh)
+    return (tiles_x * lsize[0], tiles_y * lsize[1]), lsize
+
+
 BWD_BATCH = 128   # Gaussians per local-memory batch of rasterize_bwd.cl (BATCH there)
 
 
@@ -70,8 +93,8 @@ def fwd_local_bytes(C: int) -> int:
 
 def fwd_vec_local_bytes(C: int) -> int:
     """Local memory of the rasterize_vec kernel (mirror of its __local arrays)."""
-    vw = vec_width()
-    n_blk = (TILE // vw) * (TILE // VEC_BLOCK_ROWS)
+    bw, bh = vec_block()
+    n_blk = (TILE // bw) * (TILE // bh // VEC_BLOCK_ROWS)
     per_gaussian = 8 + 16 + 4 * C + 4 + 16 + n_blk   # mean, cop, feat, thr, box, list slots
     return TILE * TILE * per_gaussian + 4 * n_blk + 8
 
@@ -164,11 +187,10 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     tiles_x, _, gsize, lsize = _grid(width, height)
     if raster_variant(rt) == "vector":
         _check_local(rt, fwd_vec_local_bytes(C), "rasterize", C)
-        vw = vec_width()
         opts = _vec_options(C)
         rec = _vec_records(rt, means2d, conic, opac, features, opts)
         k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
-        gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
+        gsize, lsize = _vec_grid(width, height)
         k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
           np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
         return res
@@ -181,7 +203,7 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
 
 
 def _vec_options(C: int):
-    return _options(C) + [f"-DVW={vec_width()}", f"-DBROWS={VEC_BLOCK_ROWS}"]
+    return _options(C) + [f"-DVW={vec_width()}", f"-DBW={vec_block()[0]}", f"-DBROWS={VEC_BLOCK_ROWS}"]
 
 
 def _vec_records(rt, means2d, conic, opac, features, opts):
@@ -229,12 +251,12 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
     v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None
     if raster_variant(rt) == "vector":
-        vw, batch = vec_width(), vec_bwd_batch(rt, C)
+        batch = vec_bwd_batch(rt, C)
         _check_local(rt, vec_bwd_local_bytes(C, batch), "rasterize_bwd", C)
         rec = _vec_records(rt, means2d, conic, opac, features, _vec_options(C))
         k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd",
                       _vec_options(C) + [f"-DDETERMINISTIC={int(det)}", f"-DBATCH={batch}"])
-        gsize, lsize = (gsize[0] // vw, gsize[1]), (TILE // vw, TILE)
+        gsize, lsize = _vec_grid(width, height)
         k(q, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
           np.int32(width), np.int32(height), np.int32(tiles_x),
           raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
