@@ -171,7 +171,8 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
             int n = 0;
             for (int j = 0; j < count; j++) {
                 const float4 bb = l_box[j];
-                if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (uchar)j;
+                list[n] = (uchar)j;   /* branch-free append: kept when the box reaches the block */
+                n += (bb.x <= bx1) & (bb.y >= bx0) & (bb.z <= by1) & (bb.w >= by0);
             }
             l_len[lid] = n;
         }
@@ -186,10 +187,18 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
             for (int c = 0; c < C; c++) a_cur[c] = acc[c];
             intV last_cur = last;
             intV done_cur = done;
+            /* the list's entries whose box reaches this block's rows (the list tested x), in
+             * order, appended branch-free */
+            uchar hits[FWD_BATCH];
+            int n_hits = 0;
             for (int i = 0; i < n_mine; i++) {
                 const int j = mine[i];
-                const float4 bb = l_box[j];   /* the list tested x; this block's rows: */
-                if (!(bb.z <= py1 && bb.w >= py0)) continue;
+                const float4 bb = l_box[j];
+                hits[n_hits] = (uchar)j;
+                n_hits += (bb.z <= py1) & (bb.w >= py0);
+            }
+            for (int h = 0; h < n_hits; h++) {
+                const int j = hits[h];
                 const float4 cop = l_cop[j];
                 const float2 mean = l_mean[j];
                 const floatV dx = (floatV)(mean.x) - px;

@@ -116,10 +116,18 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             floatV t_cur = T;
             floatV s_cur[C];
             for (int c = 0; c < C; c++) s_cur[c] = S[c];
-            for (int j = count - 1; j >= 0; j--) {
-                __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
+            /* the batch entries whose cull box reaches this block, in order (branch-free) */
+            uchar hits[BATCH];
+            int n_hits = 0;
+            for (int j = 0; j < count; j++) {
                 const float4 bb = l_box[j];
-                if (bb.x <= px1 && bb.y >= px0 && bb.z <= py1 && bb.w >= py0) {
+                hits[n_hits] = (uchar)j;
+                n_hits += (bb.x <= px1) & (bb.y >= px0) & (bb.z <= py1) & (bb.w >= py0);
+            }
+            for (int h = n_hits - 1; h >= 0; h--) {
+                const int j = hits[h];
+                __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
+                {
                     const float4 cop = l_cop[j];
                     const float2 mean = l_mean[j];
                     const floatV dx = (floatV)(mean.x) - px;
