@@ -2,8 +2,8 @@
  * "rasterize").  OpenCL C 1.2.
  *
  * Same results and rules as rasterize.cl (the GPU path, one pixel per work-item), but each
- * work-item composites a horizontal run of VW pixels held in the lanes of floatVW vectors: PoCL does
- * not vectorise the per-pixel loop of the scalar kernel, so the SIMD is written out here.  Each
+ * work-item composites VW pixels held in the lanes of floatVW vectors: PoCL does not vectorise the
+ * per-pixel loop of the scalar kernel, so the SIMD is written out here.  Each
  * work-item owns a block of BW x BH = VW pixels (lane l: pixel (l % BW, l / BW) of the block); a
  * tile is one work-group of BX x BY = (TILE / BW) x (TILE / BH) work-items, work-item (lx, ly) owning
  * the block at pixel (tx * TILE + lx * BW, ty * TILE + ly * BH).

@@ -30,14 +30,14 @@ def _options(C: int):
             f"-DALPHA_MIN={_f32_literal(ALPHA_MIN)}", f"-DT_STOP={_f32_literal(T_STOP)}"]
 
 
-# Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl), the GPU path.  "vector": each
-# work-item composites VEC_WIDTH horizontally adjacent pixels in floatN lanes (cl/rasterize_vec.cl,
-# cl/rasterize_vec_bwd.cl):
-# CPU drivers such as PoCL do not vectorise the scalar kernel's per-pixel loop.  Same results.
+# Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl, rasterize_bwd.cl), the GPU
+# path.  "vector": each work-item composites a block of VEC_WIDTH pixels in floatN lanes
+# (cl/rasterize_vec.cl, cl/rasterize_vec_bwd.cl): CPU drivers such as PoCL do not vectorise the
+# scalar kernel's per-pixel loop.  Same rules and results (to float rounding; `last` equal in the tests).
 ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
 ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
 VEC_WIDTH = 16                              # default lanes (fastest measured: PoCL, 2-core AVX2 x86)
-ENV_VEC_BLOCK_W = "ENDOWAVE_RASTER_BW"     # width of a work-item's pixel block (divides the lanes)
+ENV_VEC_BLOCK_W = "ENDOWAVE_RASTER_BW"      # width of a work-item's pixel block (divides the lanes)
 VEC_BLOCK_W = 4                             # default: 4 x 4 pixel blocks for 16 lanes (squarest: fewest
                                             # Gaussian-block pairs walked)
 VEC_BLOCK_ROWS = 4                          # rows of blocks sharing a culling list (BROWS)
