@@ -122,6 +122,6 @@ def test_deterministic_backward_is_bit_identical(rt):
     for k in runs[0]:
         assert np.array_equal(runs[0][k], runs[1][k]) and np.array_equal(runs[0][k], runs[2][k]), k
     out = render(rt, params, cam, 0.5, 0.6)
-    free = render_backward(rt, params, out, v)
+    free = render_backward(rt, params, out, v, deterministic=False)
     for k, a in free.items():   # the atomic mode computes the same gradients up to rounding
         np.testing.assert_allclose(a.get(), runs[0][k], rtol=1e-4, atol=1e-5 * (np.abs(runs[0][k]).max() + 1e-12))

@@ -19,7 +19,8 @@ class TrainConfig:
     iterations: int = 3000          # demo default: a few minutes per 1000 steps on a GPU, usable
                                     # on a CPU; 4DGS trains 30000 (pass iterations = 30000)
     seed: int = 0
-    deterministic: bool = False     # bit-identical gradients (no float atomics; ~same speed on PoCL)
+    deterministic: bool = False     # force bit-identical gradients on GPUs too (CPU devices always
+                                    # use that mode: it is the faster one there)
     log_every: int = 50
     eval_every: int = 500
     checkpoint_every: int = 1000

@@ -149,7 +149,7 @@ class Trainer:
         out = render(self.rt, self.params, frame.camera, frame.time, tgt.next_time)        # forward
         total, parts, v_features = self.losses_and_gradient(out, tgt)                    # losses
         grads = render_backward(self.rt, self.params, out, v_features, densify_stats=self.stats,   # adjoints
-                                deterministic=self.cfg.deterministic)
+                                deterministic=True if self.cfg.deterministic else None)
         self._check_finite(total, grads, k)
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step))  # Adam (v_means -> means)
         self.step += 1
