@@ -25,6 +25,27 @@ VARIANTS = {"full": {}, "no_flow": {"use_flow": False}, "no_wavelet": {"use_wave
             "no_depth": {"use_depth": False}}
 
 
+def depth_error(rt, params, scene) -> float:
+    """Mean |rendered depth - ground truth| (scene units) over the test frames' valid tissue pixels;
+    the rendered depth is divided by the accumulated alpha (the expected depth of what is seen)."""
+    import numpy as np
+
+    from endowave_cl.render import render
+    errs = []
+    for k in scene.test_indices:
+        f = scene.frames[k]
+        h = render(rt, params, f.camera, f.time).host()
+        pred = h["depth"] / np.maximum(h["alpha"], 1e-6)
+        valid = (f.depth > 0) & (np.ones_like(f.depth, bool) if f.mask is None else f.mask > 0.5)
+        errs.append(np.abs(pred - f.depth)[valid])
+    return float(np.concatenate(errs).mean())
+
+
+def _previous_rows(out: Path):
+    p = out / "ablation.json"
+    return json.loads(p.read_text()) if p.is_file() else []
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene")
@@ -37,6 +58,8 @@ def main(argv=None):
     ap.add_argument("--out", required=True)
     ap.add_argument("--device", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--evaluate-only", action="store_true",
+                    help="do not train: evaluate the newest checkpoint of each variant's run folder")
     args = ap.parse_args(argv)
 
     from endowave_cl.commands.eval import evaluate_run
@@ -67,23 +90,35 @@ def main(argv=None):
         if not scene.has_depth:
             cfg.use_depth = False
         print(f"== {name}: {scene.summary()}", flush=True)
-        t0 = time.perf_counter()
-        tr = Trainer(scene, cfg, out / name, rt, resume=False)
-        tr.train(progress=False)
-        secs = time.perf_counter() - t0
-        m = evaluate_run(rt, tr.params, scene)
-        m.update({"variant": name, "seconds": secs, "gaussians": len(tr.params["means"]),
+        if args.evaluate_only:
+            from endowave_cl.gaussians import upload
+            from endowave_cl.train.checkpoint import latest_checkpoint, load_checkpoint
+            ck = latest_checkpoint(out / name)
+            params = upload(rt, load_checkpoint(ck)["gaussians"])
+            old = [r for r in _previous_rows(out) if r["variant"] == name]
+            secs = old[0]["seconds"] if old else float("nan")
+        else:
+            t0 = time.perf_counter()
+            tr = Trainer(scene, cfg, out / name, rt, resume=False)
+            tr.train(progress=False)
+            secs = time.perf_counter() - t0
+            params = tr.params
+        eval_scene = load_scene(scene_path, downscale=cfg.downscale)   # with depth, whatever was trained
+        m = evaluate_run(rt, params, eval_scene)
+        m["depth_mae"] = depth_error(rt, params, eval_scene) if eval_scene.has_depth else None
+        m.update({"variant": name, "seconds": secs, "gaussians": len(params["means"]),
                   "use_depth": cfg.use_depth, "use_flow": cfg.use_flow, "use_wavelet": cfg.use_wavelet})
         rows.append(m)
         print(json.dumps(m), flush=True)
     lines = [f"scene {scene_path}, {scene.width}x{scene.height}, {args.iterations} steps, device {rt.name}", "",
-             "| variant | depth | flow | wavelet | PSNR | PSNR (masked) | SSIM | LPIPS | FPS | train s | Gaussians |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| variant | depth | flow | wavelet | PSNR | PSNR (masked) | SSIM | LPIPS | depth MAE | FPS | train s | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m in rows:
         lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
+        dm = "n/a" if m["depth_mae"] is None else f"{m['depth_mae']:.4f}"
         lines.append(f"| {m['variant']} | {'y' if m['use_depth'] else '-'} | {'y' if m['use_flow'] else '-'} | "
                      f"{'y' if m['use_wavelet'] else '-'} | {m['psnr']:.2f} | {m['psnr_masked']:.2f} | "
-                     f"{m['ssim']:.4f} | {lp} | {m['fps']:.1f} | {m['seconds']:.0f} | {m['gaussians']} |")
+                     f"{m['ssim']:.4f} | {lp} | {dm} | {m['fps']:.1f} | {m['seconds']:.0f} | {m['gaussians']} |")
     table = "\n".join(lines)
     print(table)
     (out / "ablation.md").write_text(table + "\n")
