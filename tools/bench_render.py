@@ -72,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--device", default=None)
     ap.add_argument("--no-reference", action="store_true", help="skip the torch reference timing")
+    ap.add_argument("--adjoint-mode", choices=("auto", "deterministic", "atomic"), default="auto",
+                    help="rasterize adjoint accumulation (auto: deterministic on CPU devices)")
     args = ap.parse_args(argv)
 
     rt = get_runtime(args.device)
@@ -112,12 +114,14 @@ def main(argv=None):
     rng = np.random.default_rng(1)
     v_feat = cla.to_device(rt.queue, rng.standard_normal((args.height, args.width, 6)).astype(np.float32) * 1e-3)
     bwd_stage = {}
+    det = {"auto": None, "deterministic": True, "atomic": False}[args.adjoint_mode]
+    print(f"adjoint mode: {args.adjoint_mode}")
 
     def bwd():
         o = render(rt, params, cam, t, t2)
         rt.queue.finish()
         t0 = time.perf_counter()
-        render_backward(rt, params, o, v_feat, timed=True)
+        render_backward(rt, params, o, v_feat, timed=True, deterministic=det)
         rt.queue.finish()
         bwd_stage.setdefault("rasterize_bwd", []).append(o.timings["rasterize_bwd"])
         bwd_stage.setdefault("project_bwd", []).append(o.timings["project_bwd"])
