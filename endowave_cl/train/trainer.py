@@ -61,11 +61,6 @@ class Trainer:
         from .checkpoint import latest_checkpoint, load_checkpoint
 
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
-        if not rt.is_gpu:
-            # The OpenCL CPU device already uses every core; torch's own thread pool competing with
-            # it made the host losses 30x slower on 2 cores (780 ms vs 25 ms at 160x128).
-            import torch
-            torch.set_num_threads(1)
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         # the run folder describes itself: render / eval / export read this
