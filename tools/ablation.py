@@ -62,7 +62,7 @@ def main(argv=None):
                     help="do not train: evaluate the newest checkpoint of each variant's run folder")
     args = ap.parse_args(argv)
 
-    from endowave_cl.commands.eval import evaluate_run
+    from endowave_cl.evaluation import evaluate_run
     from endowave_cl.data.scene import load_scene
     from endowave_cl.runtime import get_runtime
     from endowave_cl.train.config import load_config

@@ -5,11 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
-import time
 from pathlib import Path
-
-import numpy as np
 
 
 def add_arguments(p) -> None:
@@ -18,39 +14,8 @@ def add_arguments(p) -> None:
     p.add_argument("--fps-runs", type=int, default=10, help="timed renders for the FPS figure")
 
 
-def evaluate_run(rt, params, scene, fps_runs: int = 10) -> dict:
-    from ..metrics import psnr, psnr_masked, ssim
-    from ..render import render
-    from ..lpips import lpips as lpips_distance
-    from ..lpips import lpips_available
-    use_lpips = lpips_available()
-    ps, pm, ss, lp = [], [], [], []
-    for k in scene.test_indices:
-        f = scene.frames[k]
-        pred = np.clip(render(rt, params, f.camera, f.time).host()["image"], 0, 1)
-        mask = np.ones(pred.shape[:2], np.float32) if f.mask is None else f.mask
-        pm.append(psnr_masked(pred, f.image, mask))
-        pmask, gmask = pred * mask[..., None], f.image * mask[..., None]
-        ps.append(psnr(pmask, gmask))
-        ss.append(ssim(pmask, gmask))
-        if use_lpips:
-            lp.append(lpips_distance(pmask, gmask))
-    f = scene.frames[scene.test_indices[0]]
-    for _ in range(3):
-        render(rt, params, f.camera, f.time)
-    rt.queue.finish()
-    ts = []
-    for _ in range(fps_runs):
-        t0 = time.perf_counter()
-        render(rt, params, f.camera, f.time)
-        rt.queue.finish()
-        ts.append(time.perf_counter() - t0)
-    return {"psnr": float(np.mean(ps)), "psnr_masked": float(np.mean(pm)), "ssim": float(np.mean(ss)),
-            "lpips": float(np.mean(lp)) if use_lpips else None, "fps": 1.0 / statistics.median(ts),
-            "test_frames": len(scene.test_indices), "device": rt.name}
-
-
 def run(args) -> int:
+    from ..evaluation import evaluate_run
     from ..gaussians import upload
     from ..run_io import load_run
     from ..runtime import get_runtime

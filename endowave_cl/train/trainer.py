@@ -219,23 +219,10 @@ class Trainer:
         self.adam.reset_moments("opacity")
 
     # ------------------------------------------------------------------ evaluation, checkpoints
-    def render_frame(self, k: int) -> Dict[str, np.ndarray]:
-        f = self.scene.frames[k]
-        return render(self.rt, self.params, f.camera, f.time).host()
-
-    def evaluate(self, indices=None) -> Dict[str, float]:
-        from ..metrics import psnr, psnr_masked, ssim
-        idx = list(self.scene.test_indices if indices is None else indices)
-        ps, pm, ss = [], [], []
-        for k in idx:
-            f = self.scene.frames[k]
-            pred = np.clip(self.render_frame(k)["image"], 0, 1)
-            mask = np.ones(pred.shape[:2], np.float32) if f.mask is None else f.mask
-            pm.append(psnr_masked(pred, f.image, mask))
-            ps.append(psnr(pred * mask[..., None], f.image * mask[..., None]))
-            ss.append(ssim(pred * mask[..., None], f.image * mask[..., None]))
-        return {"psnr": float(np.mean(ps)), "psnr_masked": float(np.mean(pm)), "ssim": float(np.mean(ss)),
-                "frames": len(idx)}
+    def evaluate(self) -> Dict[str, float]:
+        """Test-frame PSNR (both forms) and SSIM; LPIPS and FPS are left to `endowave-cl eval`."""
+        from ..evaluation import evaluate_run
+        return evaluate_run(self.rt, self.params, self.scene, fps_runs=0, with_lpips=False)
 
     def save(self):
         from .checkpoint import save_checkpoint
