@@ -56,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    import warnings
+    # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
+    warnings.filterwarnings("ignore", message="Non-empty compiler output")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
