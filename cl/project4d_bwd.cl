@@ -2,18 +2,21 @@
  * chain rule back to the parameters.  No atomics: every Gaussian writes only its own rows.
  * Reference adjoint: torch autograd of endowave_cl/reference/project.py::project4d_ref.
  * Notation: v_x = dL/dx.  2x2 / 3x3 / 4x4 matrices are row-major. */
+#define P4_FORWARD_NO_RECT
 #include "project4d_common.h"
 
-/* d/dq of a matrix that is linear in q: v_q[k] = <v_M, M(e_k)> (Frobenius), for M_left or M_right */
+/* d/dq of a matrix that is linear in q: v_q[k] = <v_M, M(e_k)> (Frobenius), for M_left or M_right
+ * (quat_left_matrix / quat_right_matrix written out; same summation order as the j loop) */
 inline void v_quat_from_matrix(const float *vM, int left, float *vq) {
-    for (int k = 0; k < 4; ++k) {
-        float e[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-        float E[16];
-        e[k] = 1.0f;
-        if (left) quat_left_matrix(e, E); else quat_right_matrix(e, E);
-        float acc = 0.0f;
-        for (int j = 0; j < 16; ++j) acc += vM[j] * E[j];
-        vq[k] = acc;
+    vq[0] = vM[0] + vM[5] + vM[10] + vM[15];
+    if (left) {
+        vq[1] = -vM[1] + vM[4] - vM[11] + vM[14];
+        vq[2] = -vM[2] + vM[7] + vM[8] - vM[13];
+        vq[3] = -vM[3] - vM[6] + vM[9] + vM[12];
+    } else {
+        vq[1] = -vM[1] + vM[4] + vM[11] - vM[14];
+        vq[2] = -vM[2] - vM[7] + vM[8] + vM[13];
+        vq[3] = -vM[3] + vM[6] - vM[9] + vM[12];
     }
 }
 
@@ -89,15 +92,17 @@ __kernel void project4d_bwd(
         for (int f = 0; f <= NT; ++f) acc += inner[3 * f + c] * cs[f];
         gcol[c] = (0.5f + acc > 0.0f) ? vf[c] : 0.0f;   /* max(0, .) passes the gradient where > 0 */
     }
+    float gY[SH_K * 3];   /* gcol_c Y_k, shared by every frequency */
+    for (int k = 0; k < SH_K; ++k)
+        for (int c = 0; c < 3; ++c) gY[3 * k + c] = gcol[c] * Y[k];
+    __global float *vsh = v_sh + (size_t)i * ((NT + 1) * SH_K * 3);
+    for (int f = 0; f <= NT; ++f)
+        for (int j = 0; j < SH_K * 3; ++j) vsh[f * SH_K * 3 + j] = gY[j] * cs[f];
     v_phase[(NT + 1) * i] = 0.0f;                        /* phi_0 is unused */
-    for (int f = 0; f <= NT; ++f) {
-        for (int k = 0; k < SH_K; ++k)
-            for (int c = 0; c < 3; ++c) v_sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] = gcol[c] * Y[k] * cs[f];
-        /* dL/d cos(omega_f t + phi_f) = sum_c gcol_c inner_fc;  d cos(a)/d phi = -sin(a) */
-        if (f > 0)
-            v_phase[(NT + 1) * i + f] = -sn[f] * (gcol[0] * inner[3 * f] + gcol[1] * inner[3 * f + 1]
-                                                   + gcol[2] * inner[3 * f + 2]);
-    }
+    /* dL/d cos(omega_f t + phi_f) = sum_c gcol_c inner_fc;  d cos(a)/d phi = -sin(a) */
+    for (int f = 1; f <= NT; ++f)
+        v_phase[(NT + 1) * i + f] = -sn[f] * (gcol[0] * inner[3 * f] + gcol[1] * inner[3 * f + 1]
+                                               + gcol[2] * inner[3 * f + 2]);
 
     /* ---- opacity: opac = sigmoid(o) m ---- */
     float sig = 1.0f / (1.0f + exp(-opacity[i]));

@@ -216,6 +216,11 @@ inline void p4_forward(const P4Cam *cam, __global const float *means, __global c
     s->conic[0] = s->c / s->det;
     s->conic[1] = -s->b / s->det;
     s->conic[2] = s->a / s->det;
+#ifdef P4_FORWARD_NO_RECT
+    /* the adjoint takes validity from the forward's radius: means2d / radius / rect are not needed */
+    s->valid = valid;
+    return;
+#endif
     float mid = 0.5f * (s->a + s->c);
     float lmax = mid + sqrt(fmax(mid * mid - s->det, 0.0f));
     s->means2d[0] = cam->fx * x / z + cam->cx;
