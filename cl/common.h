@@ -26,6 +26,16 @@ inline void atomic_add_global_f(volatile __global float *p, float v) {
     }
 }
 
+/* Deterministic adjoint: the slot, in the unsorted binning order, of Gaussian g's entry for tile
+ * (tx, ty).  bin_gaussians (cl/bin.cl) emitted g's entries at offsets[g] .. offsets[g + 1], its
+ * rect's tiles row-major, so per-entry terms stored there are in tile order per Gaussian and
+ * contiguous; -1 if the slot lies past g's entries (a rect cut short; no such sorted entry). */
+inline int binned_slot(__global const int4 *rect, __global const int *offsets, int g, int tx, int ty) {
+    const int4 r = rect[g];   /* (x0, y0, x1, y1) exclusive */
+    const int u = offsets[g] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+    return u < offsets[g + 1] ? u : -1;
+}
+
 /* Same for local memory (used for per-work-group reductions). */
 inline void atomic_add_local_f(volatile __local float *p, float v) {
     volatile __local int *pi = (volatile __local int *)p;

@@ -26,9 +26,11 @@
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
  *
- * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for sorted entry m in
- * v_entry[m] instead (entries are unique to a tile, so no atomics), and rasterize_bwd_gather sums
- * each Gaussian's entries in tile order: bit-identical results from run to run.
+ * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for the entry of
+ * Gaussian g in this tile to v_entry[u], u = binned_slot(...) its position in the unsorted binning
+ * order (entries are unique to a tile, so no atomics; every u is written at most once), and
+ * rasterize_bwd_gather sums each Gaussian's slots, which are contiguous and in tile order:
+ * bit-identical results from run to run.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
@@ -79,7 +81,9 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    volatile __global float *v_conic,    /* [N, 3] */
                    volatile __global float *v_opac,     /* [N] */
                    volatile __global float *v_features, /* [N, C] */
-                   __global float *v_entry)          /* [M, NV] per-entry terms (DETERMINISTIC only) */
+                   __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
+                   __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
+                   __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -211,7 +215,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 float sum = 0.0f;
                 for (int s = 0; s < N_SUB; s++) sum += l_part[lid * N_SUB + s];
 #if DETERMINISTIC
-                v_entry[(base + j) * NV + lid] = sum;   /* entry base + j is this group's alone */
+                const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
+                if (u >= 0) v_entry[u * NV + lid] = sum;   /* this group's alone */
 #else
                 if (sum != 0.0f) {
                     const int g = l_gid[j];
@@ -230,17 +235,13 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     }
 }
 
-/* Deterministic mode, second pass: one work-item per Gaussian g sums its entries of v_entry in
- * increasing tile order (the tiles of its rect, row-major) and writes its gradients.  The entry of g
- * in a tile's range is found by binary search on the sort key (depth bits, then Gaussian id: the
- * stable sort keeps ids increasing among equal depths); a tile without g (culled) adds nothing.
- * v_entry is zero where the backward pass had nothing for an entry. */
-__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] */
-                                   __global const int *sorted_values,/* [M] */
-                                   __global const int2 *tile_ranges, /* [n_tiles] */
-                                   __global const int4 *rect,        /* [N] (x0, y0, x1, y1) tiles */
-                                   __global const float *depth,      /* [N] */
-                                   const int n, const int tiles_x,
+/* Deterministic mode, second pass: one work-item per Gaussian g sums its per-entry terms, which the
+ * backward pass stored at g's binning slots offsets[g] .. offsets[g + 1] (its rect's tiles
+ * row-major, see binned_slot in common.h), in that order, and writes its gradients.  v_entry is zero
+ * where the backward pass had nothing for an entry. */
+__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in binning order */
+                                   __global const int *offsets,      /* [N + 1] */
+                                   const int n,
                                    __global float *v_means2d,        /* [N, 2] */
                                    __global float *v_conic,          /* [N, 3] */
                                    __global float *v_opac,           /* [N] */
@@ -250,22 +251,9 @@ __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] *
     if (g >= n) return;
     float sum[NV];
     for (int k = 0; k < NV; k++) sum[k] = 0.0f;
-    const int4 r = rect[g];
-    const uint dg = as_uint(depth[g]);
-    for (int ty = r.y; ty < r.w; ty++) {
-        for (int tx = r.x; tx < r.z; tx++) {
-            const int2 range = tile_ranges[ty * tiles_x + tx];
-            int lo = range.x, hi = range.y;
-            while (lo < hi) {   /* first entry whose key is not below g's */
-                const int mid = lo + (hi - lo) / 2;
-                const int h = sorted_values[mid];
-                const uint dh = as_uint(depth[h]);
-                if (dh < dg || (dh == dg && h < g)) lo = mid + 1; else hi = mid;
-            }
-            if (lo < range.y && sorted_values[lo] == g)
-                for (int k = 0; k < NV; k++) sum[k] += v_entry[lo * NV + k];
-        }
-    }
+    const int end = offsets[g + 1];
+    for (int u = offsets[g]; u < end; u++)
+        for (int k = 0; k < NV; k++) sum[k] += v_entry[u * NV + k];
     v_means2d[2 * g] = sum[0];
     v_means2d[2 * g + 1] = sum[1];
     for (int k = 0; k < 3; k++) v_conic[3 * g + k] = sum[2 + k];

@@ -16,7 +16,8 @@
  * batch, one work-item per (j, k) sums the N_WI slots in work-item order, zeroes them for the next
  * batch, and adds the total to the global
  * gradient with one atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1, stores it to
- * v_entry[entry] for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
+ * the entry's binning slot of v_entry (binned_slot in common.h) for rasterize_bwd_gather (in
+ * rasterize_bwd.cl): bit-identical between runs.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
  * the largest that fits local memory, since l_part holds BATCH * NV * N_WI floats), -DDETERMINISTIC.
@@ -50,7 +51,9 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                        volatile __global float *v_conic,    /* [N, 3] */
                        volatile __global float *v_opac,     /* [N] */
                        volatile __global float *v_features, /* [N, C] */
-                       __global float *v_entry)          /* [M, NV] per-entry terms (DETERMINISTIC only) */
+                       __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
+                       __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
+                       __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -182,7 +185,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             const float sum = (s4.x + s4.y) + (s4.z + s4.w);
             const int j = t / NV, k = t % NV;
 #if DETERMINISTIC
-            v_entry[(base + j) * NV + k] = sum;   /* entry base + j is this group's alone */
+            const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
+            if (u >= 0) v_entry[u * NV + k] = sum;   /* this group's alone */
 #else
             if (sum != 0.0f) {
                 const int g = l_gid[j];

@@ -32,6 +32,7 @@ class RenderOutput:
     raster: object              # ops.rasterize.RasterOut
     sorted_values: object       # cla int32 [M]
     tile_ranges: object         # cla int32 [n_tiles, 2]
+    offsets: object             # cla int32 [N + 1] binning offsets (ops.binning.bin_gaussians)
     n_isect: int                # M, number of (tile, Gaussian) pairs
     timings: Dict[str, float] = field(default_factory=dict)  # ms per stage when timed
 
@@ -63,7 +64,7 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
         rt.queue.finish()
     proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
     t0 = _tick(rt, timings, "project", t0, timed)
-    sorted_values, tile_ranges, n_isect = bin_and_sort(
+    sorted_values, tile_ranges, n_isect, offsets = bin_and_sort(
         rt, proj.rect, proj.depth, proj.radius, proj.tiles_touched, camera.width, camera.height)
     t0 = _tick(rt, timings, "bin_sort", t0, timed)
     raster = rasterize(rt, proj.means2d, proj.conic, proj.opac, proj.features, sorted_values, tile_ranges,
@@ -72,7 +73,7 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
     if timed:
         timings["total"] = sum(timings.values())
     return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, raster, sorted_values, tile_ranges,
-                        int(n_isect), timings)
+                        offsets, int(n_isect), timings)
 
 
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
@@ -102,7 +103,7 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     p = out.proj
     v2d = rasterize_bwd(rt, p.means2d, p.conic, p.opac, p.features, out.sorted_values, out.tile_ranges,
                         cam.width, cam.height, out.raster, v_features, v_alpha,
-                        deterministic=(p.rect, p.depth) if deterministic else None)
+                        deterministic=(p.rect, out.offsets) if deterministic else None)
     t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
     if densify_stats is not None and len(params["means"]):
         accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,

@@ -9,7 +9,7 @@ import pytest
 from conftest import small
 from endowave_cl.ops import binning as B
 from endowave_cl.ops.sort import SortConfig
-from endowave_cl.reference.binning import (bin_gaussians_ref, sort_pairs_ref, tile_grid,
+from endowave_cl.reference.binning import (bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid,
                                            tile_ranges_ref)
 
 
@@ -36,9 +36,10 @@ def _dev(rt, *arrays):
 
 
 def _check_binning(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y):
-    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tiles_touched), tiles_x, tiles_y)
+    keys, vals, m, offsets = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tiles_touched), tiles_x, tiles_y)
     ref_k, ref_v = bin_gaussians_ref(rect, depth, radius, tiles_x)
     assert m == len(ref_k)
+    np.testing.assert_array_equal(offsets.get(), bin_offsets_ref(rect, radius))
     assert keys.dtype == np.uint64 and vals.dtype == np.int32 and keys.shape == (m,)
     np.testing.assert_array_equal(keys.get(), ref_k)
     np.testing.assert_array_equal(vals.get(), ref_v)
@@ -48,8 +49,9 @@ def _check_binning(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y):
 def _check_chain(rt, rect, depth, radius, tiles_touched, width, height, config=None):
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    sv, ranges, m = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tiles_touched), width, height,
-                                   sort_config=config)
+    sv, ranges, m, offsets = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tiles_touched), width, height,
+                                            sort_config=config)
+    np.testing.assert_array_equal(offsets.get(), bin_offsets_ref(rect, radius))
     ref_k, ref_v = sort_pairs_ref(*bin_gaussians_ref(rect, depth, radius, tiles_x))
     assert m == len(ref_k) and sv.shape == (m,) and sv.dtype == np.int32
     assert ranges.shape == (n_tiles, 2) and ranges.dtype == np.int32
@@ -68,8 +70,10 @@ def test_bin_gaussians_matches_reference(rt, n, tiles_x, tiles_y):
 
 def test_bin_empty_input(rt):
     z = np.zeros(0, np.int32)
-    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 4, 3)
+    keys, vals, m, offsets = B.bin_gaussians(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z),
+                                             4, 3)
     assert m == 0 and keys.shape == (0,) and vals.shape == (0,)
+    np.testing.assert_array_equal(offsets.get(), [0])
 
 
 def test_bin_all_culled(rt):
@@ -77,8 +81,9 @@ def test_bin_all_culled(rt):
     rect, depth, radius, tt = _scene(rng, 50, 9, 6)
     radius[:] = 0
     tt[:] = 0
-    keys, vals, m = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tt), 9, 6)
+    keys, vals, m, offsets = B.bin_gaussians(rt, *_dev(rt, rect, depth, radius, tt), 9, 6)
     assert m == 0 and keys.size == 0
+    np.testing.assert_array_equal(offsets.get(), np.zeros(51, np.int32))
 
 
 def test_bin_radius_zero_ignores_stale_tiles_touched(rt):
@@ -137,7 +142,7 @@ def test_bin_and_sort_other_sort_configs(rt, cfg):
 
 def test_bin_and_sort_empty(rt):
     z = np.zeros(0, np.int32)
-    sv, ranges, m = B.bin_and_sort(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 50, 40)
+    sv, ranges, m, _ = B.bin_and_sort(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 50, 40)
     assert m == 0 and sv.shape == (0,)
     np.testing.assert_array_equal(ranges.get(), np.zeros((4 * 3, 2), np.int32))
 

@@ -9,7 +9,8 @@ import torch
 from conftest import small, oclgrind_active
 from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_BLOCK_W, ENV_VEC_WIDTH, VARIANTS,
                                        accumulate_densify_stats, rasterize, rasterize_bwd)
-from endowave_cl.reference.binning import bin_gaussians_ref, sort_pairs_ref, tile_grid, tile_ranges_ref
+from endowave_cl.reference.binning import (bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid,
+                                           tile_ranges_ref)
 from endowave_cl.reference.rasterize import (ALPHA_MAX, accumulate_densify_stats_ref, rasterize_bwd_ref,
                                              rasterize_dense_ref, rasterize_ref)
 
@@ -215,7 +216,8 @@ def run_bwd(rt, sc, seed=0, deterministic=False):
     v_alpha = rng.standard_normal((h, w)).astype(np.float32)
     det = None
     if deterministic:
-        det = (cla.to_device(rt.queue, sc["rect"]), cla.to_device(rt.queue, sc["depth"]))
+        det = (cla.to_device(rt.queue, np.ascontiguousarray(sc["rect"], np.int32)),
+               cla.to_device(rt.queue, bin_offsets_ref(sc["rect"], sc["radius"])))
     g = rasterize_bwd(rt, *dev, w, h, r, cla.to_device(rt.queue, v_out), cla.to_device(rt.queue, v_alpha),
                       deterministic=det)
     ref = rasterize_bwd_ref(sc["means2d"], sc["conic"], sc["opac"], sc["features"], sc["sorted_values"],

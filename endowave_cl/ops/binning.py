@@ -2,7 +2,9 @@
 
 See docs/ARCHITECTURE.md "bin, sort, ranges".  The rasterizer consumes the output of
 :func:`bin_and_sort`: sorted_values [M] int32 (Gaussian ids, per tile front to back) and
-tile_ranges [n_tiles, 2] int32 (start, end) into it.
+tile_ranges [n_tiles, 2] int32 (start, end) into it.  The deterministic rasterize adjoint also
+takes the binning offsets [N + 1] (Gaussian i's entries were emitted at offsets[i] .. offsets[i+1],
+its rect's tiles row-major), to file per-entry terms by Gaussian without a search.
 """
 from __future__ import annotations
 
@@ -37,9 +39,10 @@ def _launch(rt, name, n, *args):
 
 def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
                   tiles_touched: cla.Array, tiles_x: int, tiles_y: int
-                  ) -> Tuple[cla.Array, cla.Array, int]:
-    """(keys [M] uint64, values [M] int32, M): for each Gaussian with radius > 0, one entry
-    per tile of its rect, row-major, at its offset in the exclusive scan of tiles_touched.
+                  ) -> Tuple[cla.Array, cla.Array, int, cla.Array]:
+    """(keys [M] uint64, values [M] int32, M, offsets [N + 1] int32): for each Gaussian with
+    radius > 0, one entry per tile of its rect, row-major, at offsets[i] (the exclusive scan of
+    tiles_touched; offsets[N] = M).
 
     rect [N, 4] int32 (x0, y0, x1, y1) exclusive, clamped to the tiles_x x tiles_y grid;
     depth [N] float32; radius [N] int32; tiles_touched [N] int32 (= the rect's area).
@@ -47,7 +50,7 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     n = int(depth.size)
     q = rt.queue
     if n == 0:
-        return cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0
+        return cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32)
     counts = cla.empty(q, n, np.int32)  # [N]
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, np.int32(n), counts.data)
     offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
@@ -57,7 +60,7 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     if m > 0:
         _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
                 np.int32(n), np.int32(tiles_x), keys.data, values.data)
-    return keys, values, m
+    return keys, values, m, offsets
 
 
 def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
@@ -72,11 +75,11 @@ def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
 
 def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles_touched: cla.Array,
                  width: int, height: int, sort_config: Optional[SortConfig] = None
-                 ) -> Tuple[cla.Array, cla.Array, int]:
-    """(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M) for a width x height image:
-    scan -> bin -> radix sort of the needed key bits -> ranges."""
+                 ) -> Tuple[cla.Array, cla.Array, int, cla.Array]:
+    """(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M, offsets [N + 1] int32) for a
+    width x height image: scan -> bin -> radix sort of the needed key bits -> ranges."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    keys, values, m = bin_gaussians(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y)
+    keys, values, m, offsets = bin_gaussians(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y)
     sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, key_bits(n_tiles), sort_config)
-    return sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m
+    return sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m, offsets

@@ -135,6 +135,7 @@ class RasterOut:
     alpha: "object"    # [H, W] float32, 1 - T_final
     T_final: "object"  # [H, W] float32
     last: "object"     # [H, W] int32, one past the last contributor (relative to the tile's start)
+    rec: "object" = None  # [N, REC4, 4] float32 records of the vector variant (reused by its adjoint)
 
 
 _DUMMY = weakref.WeakKeyDictionary()   # Runtime -> 4-byte buffer
@@ -193,6 +194,7 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
         gsize, lsize = _vec_grid(width, height)
         k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
           np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+        res.rec = rec
         return res
     _check_local(rt, fwd_local_bytes(C), "rasterize", C)
     k = rt.kernel("rasterize.cl", "rasterize", _options(C))
@@ -229,9 +231,10 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     dict(v_means2d [N,2], v_conic [N,3], v_opac [N], v_features [N,C]) (new pyopencl arrays).
 
     deterministic: None (default: per-group CAS adds, last-bit differences between runs) or a pair
-    (rect [N,4] int32, depth [N] float32), the arrays the sorted list was built from: then the
-    gradients are bit-identical from run to run (per-entry terms, gathered per Gaussian in tile
-    order; needs M * (6 + C) floats of scratch).
+    (rect [N,4] int32, offsets [N+1] int32), the rects and binning offsets the sorted list was built
+    from (ops.binning.bin_gaussians): then the gradients are bit-identical from run to run
+    (per-entry terms stored at the entries' binning slots, summed per Gaussian in tile order;
+    needs M * (6 + C) floats of scratch).
     """
     import pyopencl.array as cla
     width, height = int(width), int(height)
@@ -249,11 +252,17 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     if det and M == 0:
         return grads
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
-    v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None
+    v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None   # [M, NV] in binning order
+    rect, offsets = deterministic if det else (None, None)
+    if det:
+        assert rect.shape == (N, 4) and rect.dtype == np.int32, (rect.shape, rect.dtype)
+        assert offsets.shape == (N + 1,) and offsets.dtype == np.int32, (offsets.shape, offsets.dtype)
     if raster_variant(rt) == "vector":
         batch = vec_bwd_batch(rt, C)
         _check_local(rt, vec_bwd_local_bytes(C, batch), "rasterize_bwd", C)
-        rec = _vec_records(rt, means2d, conic, opac, features, _vec_options(C))
+        rec = raster_out.rec
+        if rec is None or rec.shape[0] != N:
+            rec = _vec_records(rt, means2d, conic, opac, features, _vec_options(C))
         k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd",
                       _vec_options(C) + [f"-DDETERMINISTIC={int(det)}", f"-DBATCH={batch}"])
         gsize, lsize = _vec_grid(width, height)
@@ -261,7 +270,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
           np.int32(width), np.int32(height), np.int32(tiles_x),
           raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
           grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry))
+          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
@@ -269,15 +278,12 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
           tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
           raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
           grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry))
+          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     if det:
-        rect, depth = deterministic
-        assert rect.shape == (N, 4) and rect.dtype == np.int32 and depth.shape == (N,)
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        kg(q, (round_up(N, wg),), (wg,), v_entry.data, sorted_values.data, tile_ranges.data, rect.data,
-           depth.data, np.int32(N), np.int32(tiles_x), grads["v_means2d"].data, grads["v_conic"].data,
-           grads["v_opac"].data, grads["v_features"].data)
+        kg(q, (round_up(N, wg),), (wg,), v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
+           grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 
 

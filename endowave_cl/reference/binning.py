@@ -28,6 +28,15 @@ def bin_gaussians_ref(rect: np.ndarray, depth: np.ndarray, radius: np.ndarray, t
     return np.array(keys, np.uint64), np.array(vals, np.int32)
 
 
+def bin_offsets_ref(rect: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """[N + 1] int32: where each Gaussian's entries start in the unsorted list of
+    bin_gaussians_ref (its rect's area when radius > 0, else 0, scanned), then the total."""
+    rect = np.asarray(rect, np.int64).reshape(-1, 4)
+    area = np.maximum(rect[:, 2] - rect[:, 0], 0) * np.maximum(rect[:, 3] - rect[:, 1], 0)
+    counts = np.where(np.asarray(radius) > 0, area, 0)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+
+
 def sort_pairs_ref(keys: np.ndarray, values: np.ndarray):
     order = np.argsort(keys, kind="stable")
     return keys[order], values[order]
