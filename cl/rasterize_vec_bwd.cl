@@ -11,16 +11,16 @@
  * exp_nonpos bit for bit), so the same Gaussians count as contributors.
  *
  * Reduction, without atomics in local memory and without a barrier per Gaussian: for each entry j
- * of the batch each work-item whose lanes use it sums their NV gradient terms (vhsum: fixed order)
- * and stores them to its own slot l_part[j][k][work-item] (the other slots hold zeros); after the
- * batch, one work-item per (j, k) sums the N_WI slots in work-item order, zeroes them for the next
- * batch, and adds the total to the global
- * gradient with one atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1, stores it to
- * the entry's binning slot of v_entry (binned_slot in common.h) for rasterize_bwd_gather (in
- * rasterize_bwd.cl): bit-identical between runs.
+ * of the batch, each work-item whose lanes use it sums its lanes' NV gradient terms (vhsum4, a
+ * fixed order) and stores them as NSV float4 to its own slot l_part4[j][work-item], and marks bit j
+ * of its mask l_wrote[work-item].  After the batch, one work-item per entry adds up the slots that
+ * were written, in work-item order (float4 adds; no slot needs zeroing), and adds the totals to
+ * the global gradients with atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1,
+ * stores them to the entry's binning slot of v_entry (binned_slot in common.h, looked up once per
+ * entry while staging) for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
- * the largest that fits local memory, since l_part holds BATCH * NV * N_WI floats), -DDETERMINISTIC.
+ * the largest that fits local memory, since l_part4 holds BATCH * N_WI * NSV float4), -DDETERMINISTIC.
  */
 #include "common.h"
 #include "vexp.h"
@@ -31,11 +31,12 @@
 #define DETERMINISTIC 0
 #endif
 #define NV (6 + C)             /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
+#define NSV ((NV + 3) / 4)     /* float4 per slot (the terms past NV are zeros) */
 #ifndef BATCH
 #define BATCH 16
 #endif
-#if (N_WI % 16) != 0
-#error "the reduction reads N_WI / 4 float4 in groups of four"
+#if BATCH > 32
+#error "a work-item's written-slot mask is one 32-bit word per batch"
 #endif
 
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
@@ -59,10 +60,11 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
     __local float l_feat[BATCH * C];
     __local int l_gid[BATCH];
+    __local int l_slot[BATCH];                   /* binned_slot of each entry (DETERMINISTIC) */
     __local float l_thr[BATCH];
     __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
-    __local float4 l_part4[BATCH * NV * N_WI / 4];   /* [BATCH, NV, N_WI] per-work-item sums */
-    __local float *l_part = (__local float *)l_part4;
+    __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
+    __local uint l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
 
     const int lx = get_local_id(0), ly = get_local_id(1);
@@ -98,7 +100,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
 
     const int2 range = tile_ranges[tile];
     if (lid == 0) l_max_last = 0;
-    for (int t = lid; t < BATCH * NV * N_WI / 4; t += N_WI) l_part4[t] = (float4)(0.0f);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (max_last_mine > 0) atomic_max(&l_max_last, max_last_mine);
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -111,6 +112,9 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         for (int j = lid; j < count; j += N_WI) {
             const int g = sorted_values[base + j];
             l_gid[j] = g;
+#if DETERMINISTIC
+            l_slot[j] = binned_slot(rect, offsets, g, tx, ty);
+#endif
             stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
@@ -122,6 +126,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             /* the batch entries whose cull box reaches this block, in order (branch-free) */
             uchar hits[BATCH];
             int n_hits = 0;
+            uint wrote = 0;
             for (int j = 0; j < count; j++) {
                 const float4 bb = l_box[j];
                 hits[n_hits] = (uchar)j;
@@ -129,7 +134,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             }
             for (int h = n_hits - 1; h >= 0; h--) {
                 const int j = hits[h];
-                __local float *part = l_part + j * NV * N_WI + lid;   /* slot (j, k) at k * N_WI */
+                __local float4 *slot = l_part4 + (j * N_WI + lid) * NSV;
                 {
                     const float4 cop = l_cop[j];
                     const float2 mean = l_mean[j];
@@ -143,6 +148,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                         const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
                         use &= alpha >= ALPHA_MIN;
                         if (VANY(use)) {
+                            floatV term[4 * NSV];   /* per-lane gradient terms, zeros past NV */
                             const floatV inv_om = 1.0f / (1.0f - alpha);
                             t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
                             const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
@@ -151,50 +157,54 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                                 const float f = l_feat[j * C + c];
                                 v_al += vo[c] * (f * t_cur - s_cur[c] * inv_om);
                                 s_cur[c] += f * w;
-                                part[(6 + c) * N_WI] = vhsum(vo[c] * w);
+                                term[6 + c] = vo[c] * w;
                             }
+                            for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
                             const intV grad = use & (raw <= ALPHA_MAX);
                             const floatV v_power = grad != 0 ? v_al * alpha : (floatV)(0.0f);
-                            part[0 * N_WI] = vhsum(-v_power * (cop.x * dx + cop.y * dy));
-                            part[1 * N_WI] = vhsum(-v_power * (cop.z * dy + cop.y * dx));
-                            part[2 * N_WI] = vhsum(-0.5f * v_power * dx * dx);
-                            part[3 * N_WI] = vhsum(-v_power * dx * dy);
-                            part[4 * N_WI] = vhsum(-0.5f * v_power * dy * dy);
-                            part[5 * N_WI] = vhsum(grad != 0 ? v_al * G : (floatV)(0.0f));
+                            term[0] = -v_power * (cop.x * dx + cop.y * dy);
+                            term[1] = -v_power * (cop.z * dy + cop.y * dx);
+                            term[2] = -0.5f * v_power * dx * dx;
+                            term[3] = -v_power * dx * dy;
+                            term[4] = -0.5f * v_power * dy * dy;
+                            term[5] = grad != 0 ? v_al * G : (floatV)(0.0f);
+                            for (int v = 0; v < NSV; v++)
+                                slot[v] = vhsum4(term[4 * v], term[4 * v + 1], term[4 * v + 2], term[4 * v + 3]);
+                            wrote |= 1u << j;
                         }
                     }
                 }
             }
+            l_wrote[lid] = wrote;
             T = t_cur;
             for (int c = 0; c < C; c++) S[c] = s_cur[c];
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
-        /* one work-item per (entry, value): sum the work-items' slots in order, one global add */
-        for (int t = lid; t < count * NV; t += N_WI) {
-            /* float4 loads into four accumulators (a fixed order; serial scalar adds are
-             * latency-bound on CPUs) */
-            __local float4 *src = l_part4 + t * (N_WI / 4);
-            float4 s0 = src[0], s1 = src[1], s2 = src[2], s3 = src[3];
-            for (int i = 4; i < N_WI / 4; i += 4) {
-                s0 += src[i]; s1 += src[i + 1]; s2 += src[i + 2]; s3 += src[i + 3];
-            }
-            for (int i = 0; i < N_WI / 4; i++) src[i] = (float4)(0.0f);   /* zeros for the next batch */
-            const float4 s4 = (s0 + s1) + (s2 + s3);
-            const float sum = (s4.x + s4.y) + (s4.z + s4.w);
-            const int j = t / NV, k = t % NV;
+        /* one work-item per entry: sum the slots the work-items wrote, in work-item order; one
+         * global add or store per value */
+        for (int j = lid; j < count; j += N_WI) {
+            __local const float4 *src = l_part4 + j * N_WI * NSV;
+            float4 sum[NSV];
+            for (int v = 0; v < NSV; v++) sum[v] = (float4)(0.0f);
+            for (int i = 0; i < N_WI; i++)
+                if ((l_wrote[i] >> j) & 1u)
+                    for (int v = 0; v < NSV; v++) sum[v] += src[i * NSV + v];
+            const float *tot = (const float *)sum;   /* [4 * NSV], the NV values first */
 #if DETERMINISTIC
-            const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
-            if (u >= 0) v_entry[u * NV + k] = sum;   /* this group's alone */
+            const int u = l_slot[j];                  /* this group's alone */
+            if (u >= 0)
+                for (int k = 0; k < NV; k++) v_entry[u * NV + k] = tot[k];
 #else
-            if (sum != 0.0f) {
-                const int g = l_gid[j];
+            const int g = l_gid[j];
+            for (int k = 0; k < NV; k++) {
+                if (tot[k] == 0.0f) continue;
                 volatile __global float *dst =
                     k < 2 ? v_means2d + 2 * g + k :
                     k < 5 ? v_conic + 3 * g + (k - 2) :
                     k == 5 ? v_opac + g : v_features + g * C + (k - 6);
-                atomic_add_global_f(dst, sum);
+                atomic_add_global_f(dst, tot[k]);
             }
 #endif
         }
