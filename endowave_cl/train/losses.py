@@ -46,24 +46,30 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
     The 11 x 11 Gaussian window is separable, so the five local means are computed in one batched
     pair of 1D convolutions (rows, then columns); with zero padding this equals the 2D convolution.
+    The maps stay channel-last (torch's channels_last format): torch's CPU depthwise convolution
+    is about 3x faster there than on NCHW planes, forward and backward (640x512, 2 threads).
     """
     C = pred.shape[-1]
-    x = pred.permute(2, 0, 1).unsqueeze(0)  # [1, C, H, W]
-    y = gt.permute(2, 0, 1).unsqueeze(0)
     g = _gaussian_window_1d(SSIM_WINDOW, SSIM_SIGMA, pred.dtype, pred.device)
     pad = SSIM_WINDOW // 2
-    stack = torch.cat([x, y, x * x, y * y, x * y], 1)  # [1, 5C, H, W]
+    stack = torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], -1)   # [H, W, 5C]
+    # [1, 5C, H, W] with channels_last strides (the batch dimension added before the permute:
+    # torch only takes its channels_last kernels when every stride, that of N too, is the format's)
+    stack = stack.unsqueeze(0).permute(0, 3, 1, 2)
     n = stack.shape[1]
     wr = g.view(1, 1, 1, -1).expand(n, 1, 1, SSIM_WINDOW)
     wc = g.view(1, 1, -1, 1).expand(n, 1, SSIM_WINDOW, 1)
     blurred = F.conv2d(F.conv2d(stack, wr, padding=(0, pad), groups=n), wc, padding=(pad, 0), groups=n)
-    mu_x, mu_y, exx, eyy, exy = blurred.split(C, dim=1)
+    # back to five contiguous [H, W, C] maps (element-wise maths on interleaved views is slow)
+    H, W = pred.shape[:2]
+    maps = blurred.permute(0, 2, 3, 1).reshape(H, W, 5, C).permute(2, 0, 1, 3).contiguous()  # [5, H, W, C]
+    mu_x, mu_y, exx, eyy, exy = maps.unbind(0)
     sxx = exx - mu_x * mu_x
     syy = eyy - mu_y * mu_y
     sxy = exy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
-    return (num / den)[0].permute(1, 2, 0)
+    return num / den
 
 
 def _mask_like(mask: Optional[torch.Tensor], ref: torch.Tensor) -> torch.Tensor:
