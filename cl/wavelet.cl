@@ -11,6 +11,15 @@
  */
 #include "common.h"
 
+/* The resampling kernels take the factor a = RP / RQ as build options, so that their divisions
+ * by p and q are by constants (endowave_cl/wavelet/ops.py sets them). */
+#ifndef RP
+#define RP 3
+#endif
+#ifndef RQ
+#define RQ 2
+#endif
+
 /* Whole-sample symmetric reflection of position m into [0, n): -1 -> 1, n -> n - 2, repeated. */
 inline int reflect_idx(int m, int n) {
     if (n == 1) return 0;
@@ -20,19 +29,27 @@ inline int reflect_idx(int m, int n) {
     return r < n ? r : period - r;
 }
 
-/* out[o, x, k] = sum_i f[i] in[o, reflect(x - (i - R)), k], R = flen / 2 (flen odd).
- * in, out: [outer, n, inner]; f: [flen] */
-__kernel void conv_axis(__global const float *in, __global float *out,
-                        __global const float *f, const int flen,
-                        const int outer, const int n, const int inner) {
-    const int xi = get_global_id(0);            /* x * inner + k */
-    const int o = get_global_id(1);
-    if (xi >= n * inner || o >= outer) return;
-    const int k = xi % inner;
-    const int x = xi / inner;
-    const size_t gid = (size_t)o * n * inner + xi;
+/* The convolution kernels compute CONV_RUN = 8 consecutive elements of a line per work-item: in
+ * the interior (no reflection) each tap is then one 8-wide load and multiply-add for all of them,
+ * the same operations in the same order as the per-element path, which serves the border
+ * elements.  (With one element per work-item PoCL ran a serial chain of scalar multiply-adds.)
+ * The 8-wide loads and stores are written element by element: PoCL calls vload8 / vstore8 out of
+ * line, while the compiler merges the element accesses into one unaligned vector access. */
+#define CONV_RUN 8
+
+inline float8 load8(__global const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+}
+
+inline void store8(__global float *p, float8 v) {
+    p[0] = v.s0; p[1] = v.s1; p[2] = v.s2; p[3] = v.s3;
+    p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
+}
+
+/* sum_i f[i] line[reflect(x - (i - R)) * inner]: one element of conv_axis; line = &in[o, 0, k]. */
+inline float conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,
+                       int x) {
     const int R = flen / 2;
-    __global const float *line = in + (size_t)o * n * inner + k;
     float acc = 0.0f;
     if (x - R >= 0 && x + R < n) {          /* interior: no reflection needed */
         for (int i = 0; i < flen; ++i)
@@ -41,24 +58,41 @@ __kernel void conv_axis(__global const float *in, __global float *out,
         for (int i = 0; i < flen; ++i)
             acc += f[i] * line[(size_t)reflect_idx(x - i + R, n) * inner];
     }
-    out[gid] = acc;
+    return acc;
 }
 
-/* Adjoint of conv_axis.  v_in[o, y, k] (+)= sum over padded positions m in [-R, n - 1 + R] with
- * reflect(m) = y of sum_i f[i] v_out[o, m + i - R, k] (terms with m + i - R outside [0, n)
- * dropped).  The positions m that reflect onto y are y + j P and -y + j P, P = 2 (n - 1).
- * v_out, v_in: [outer, n, inner]; accumulate != 0 adds to v_in instead of overwriting it. */
-__kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
-                          __global const float *f, const int flen,
-                          const int outer, const int n, const int inner, const int accumulate) {
-    const int xi = get_global_id(0);            /* y * inner + k */
+/* out[o, x, k] = sum_i f[i] in[o, reflect(x - (i - R)), k], R = flen / 2 (flen odd).
+ * in, out: [outer, n, inner]; f: [flen].  Work-item (t, o) computes the flat elements
+ * x * inner + k = t * CONV_RUN ... t * CONV_RUN + CONV_RUN - 1 of line o. */
+__kernel void conv_axis(__global const float *in, __global float *out,
+                        __global const float *f, const int flen,
+                        const int outer, const int n, const int inner) {
+    const int xi0 = get_global_id(0) * CONV_RUN;    /* first x * inner + k of this work-item */
     const int o = get_global_id(1);
-    if (xi >= n * inner || o >= outer) return;
-    const int k = xi % inner;
-    const int y = xi / inner;
-    const size_t gid = (size_t)o * n * inner + xi;
+    const int len = n * inner;
+    if (xi0 >= len || o >= outer) return;
     const int R = flen / 2;
-    __global const float *line = v_out + (size_t)o * n * inner + k;
+    __global const float *in_o = in + (size_t)o * len;
+    __global float *out_o = out + (size_t)o * len;
+    if (xi0 + CONV_RUN <= len && xi0 / inner - R >= 0 && (xi0 + CONV_RUN - 1) / inner + R < n) {
+        /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
+        float8 acc = (float8)(0.0f);
+        for (int i = 0; i < flen; ++i)
+            acc += f[i] * load8(in_o + xi0 + (R - i) * inner);
+        store8(out_o + xi0, acc);
+    } else {
+        const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
+        for (int xi = xi0; xi < end; ++xi) {
+            const int x = xi / inner;
+            out_o[xi] = conv_elem(in_o + (xi - x * inner), f, flen, n, inner, x);
+        }
+    }
+}
+
+/* One element of v_conv_axis (see there); line = &v_out[o, 0, k]. */
+inline float v_conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,
+                         int y) {
+    const int R = flen / 2;
     float acc = 0.0f;
     if (y > R && y < n - 1 - R) {
         /* interior: m = y is the only padded position in [-R, n - 1 + R] that reflects onto y,
@@ -87,16 +121,48 @@ __kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
             }
         }
     }
-    if (accumulate) acc += v_in[gid];
-    v_in[gid] = acc;
+    return acc;
 }
 
-/* Rational resampling by a = p / q (linear interpolation at n_out * p / q):
+/* Adjoint of conv_axis.  v_in[o, y, k] (+)= sum over padded positions m in [-R, n - 1 + R] with
+ * reflect(m) = y of sum_i f[i] v_out[o, m + i - R, k] (terms with m + i - R outside [0, n)
+ * dropped).  The positions m that reflect onto y are y + j P and -y + j P, P = 2 (n - 1).
+ * v_out, v_in: [outer, n, inner]; accumulate != 0 adds to v_in instead of overwriting it.
+ * Work-item (t, o) computes CONV_RUN consecutive flat elements, as in conv_axis. */
+__kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
+                          __global const float *f, const int flen,
+                          const int outer, const int n, const int inner, const int accumulate) {
+    const int yi0 = get_global_id(0) * CONV_RUN;    /* first y * inner + k of this work-item */
+    const int o = get_global_id(1);
+    const int len = n * inner;
+    if (yi0 >= len || o >= outer) return;
+    const int R = flen / 2;
+    __global const float *vo = v_out + (size_t)o * len;
+    __global float *vi = v_in + (size_t)o * len;
+    if (yi0 + CONV_RUN <= len && yi0 / inner > R && (yi0 + CONV_RUN - 1) / inner < n - 1 - R) {
+        /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
+        float8 acc = (float8)(0.0f);
+        for (int i = 0; i < flen; ++i)
+            acc += f[i] * load8(vo + yi0 + (i - R) * inner);
+        if (accumulate) acc += load8(vi + yi0);
+        store8(vi + yi0, acc);
+    } else {
+        const int end = yi0 + CONV_RUN < len ? yi0 + CONV_RUN : len;
+        for (int yi = yi0; yi < end; ++yi) {
+            const int y = yi / inner;
+            float acc = v_conv_elem(vo + (yi - y * inner), f, flen, n, inner, y);
+            if (accumulate) acc += vi[yi];
+            vi[yi] = acc;
+        }
+    }
+}
+
+/* Rational resampling by a = p / q = RP / RQ (linear interpolation at n_out * p / q):
  * out[o, j, k] = ((q - r) in[o, i0, k] + r in[o, i0 + 1, k]) / q,  j p = i0 q + r, 0 <= r < q.
  * in: [outer, n_in, inner]; out: [outer, n_out, inner], n_out = (n_in - 1) q / p + 1. */
 __kernel void resample_axis(__global const float *in, __global float *out,
-                            const int p, const int q,
                             const int outer, const int n_in, const int n_out, const int inner) {
+    const int p = RP, q = RQ;
     const int xi = get_global_id(0);            /* j * inner + k */
     const int o = get_global_id(1);
     if (xi >= n_out * inner || o >= outer) return;
@@ -117,9 +183,9 @@ __kernel void resample_axis(__global const float *in, __global float *out,
 /* Adjoint of resample_axis: v_in[o, i, k] (+)= sum_j max(0, 1 - |j p - i q| / q) v_out[o, j, k],
  * over the j with |j p - i q| < q, i.e. ceil(((i - 1) q + 1) / p) <= j <= floor(((i + 1) q - 1) / p). */
 __kernel void v_resample_axis(__global const float *v_out, __global float *v_in,
-                              const int p, const int q,
                               const int outer, const int n_in, const int n_out, const int inner,
                               const int accumulate) {
+    const int p = RP, q = RQ;
     const int xi = get_global_id(0);            /* i * inner + k */
     const int o = get_global_id(1);
     if (xi >= n_in * inner || o >= outer) return;
@@ -133,8 +199,10 @@ __kernel void v_resample_axis(__global const float *v_out, __global float *v_in,
     __global const float *line = v_out + (size_t)o * n_out * inner + k;
     float acc = 0.0f;
     for (int j = jlo; j <= jhi; ++j) {
-        const int d = abs(j * p - i * q);
-        if (d < q) acc += ((float)(q - d) / (float)q) * line[(size_t)j * inner];
+        /* |j p - i q| in float (exact for these small integers): the integer abs is an
+         * out-of-line call on PoCL, and Oclgrind lacks the llvm.abs intrinsic it becomes */
+        const float d = fabs((float)(j * p - i * q));
+        if (d < (float)q) acc += (((float)q - d) / (float)q) * line[(size_t)j * inner];
     }
     if (accumulate) acc += v_in[gid];
     v_in[gid] = acc;

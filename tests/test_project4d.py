@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import oclgrind_active, small
+from conftest import small
 from endowave_cl.camera import Camera
 from endowave_cl.gaussians import MARGINAL_CULL, Gaussians, upload
 from endowave_cl.ops.project import project4d, project4d_bwd

@@ -4,9 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 import pytest
-import torch
 
-from conftest import small, oclgrind_active
+from conftest import small
 from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_BLOCK_W, ENV_VEC_WIDTH, VARIANTS,
                                        accumulate_densify_stats, rasterize, rasterize_bwd)
 from endowave_cl.reference.binning import (bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid,

@@ -24,9 +24,12 @@ def dot(a, b):
     return float(np.sum(np.asarray(a, np.float64) * np.asarray(b, np.float64)))
 
 
-# (shape, axis): short axes (n < R, n = 1, 2) exercise the repeated reflection
+# (shape, axis): short axes (n < R, n = 1, 2) exercise the repeated reflection; the longer ones
+# the kernels' 8-element interior runs (CONV_RUN), with line lengths n * inner that are not
+# multiples of 8 (runs that end early) and inner = 1 (a run spans 8 positions of the axis)
 CONV_CASES = [((5, 7, 3), 1), ((5, 7, 3), 0), ((1, 9, 2), 1), ((3, 2, 1), 1), ((2, 4, 3), 0),
-              ((33, 21, 3), 1), ((33, 21, 3), 0), ((17,), 0), ((6, 5, 4, 2), 2)]
+              ((33, 21, 3), 1), ((33, 21, 3), 0), ((17,), 0), ((6, 5, 4, 2), 2),
+              ((7, 41, 5), 1), ((45, 13, 3), 0), ((3, 61), 1), ((70,), 0)]
 
 
 @pytest.mark.parametrize("shape,axis", CONV_CASES)
@@ -53,8 +56,16 @@ def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
     np.testing.assert_allclose(ATy, ref, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("axis", [0, 1])
+def test_conv_adjoint_accumulates_over_interior_runs(rt, axis):
+    y, f, base = rand((37, 29, 3), 11), rand(13, 12), rand((37, 29, 3), 13)
+    out = dev(rt, base)
+    ops.v_conv_axis(rt, dev(rt, y), f, axis, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.v_conv_axis(rt, dev(rt, y), f, axis).get(), atol=1e-5)
+
+
 def test_adjoints_accumulate(rt):
-    x, y, f = rand((6, 5, 2), 4), rand((6, 5, 2), 5), rand(9, 6)
+    y, f = rand((6, 5, 2), 5), rand(9, 6)
     base = rand((6, 5, 2), 7)
     out = dev(rt, base)
     ops.v_conv_axis(rt, dev(rt, y), f, 1, out=out, accumulate=True)

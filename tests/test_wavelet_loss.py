@@ -188,3 +188,18 @@ def test_oclgrind_short_axes_reflect_repeatedly(rt):
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-5)
         rs = ops.resample_axis(rt, dev(rt, x), 2, axis).get()
         np.testing.assert_allclose(rs, F.resample_axis(x, 2, axis), atol=1e-6)
+
+
+@pytest.mark.oclgrind
+def test_oclgrind_conv_interior_runs(rt):
+    # lines long enough for the 8-element interior runs of conv_axis / v_conv_axis (CONV_RUN),
+    # with a line length that is not a multiple of 8, along both image axes, accumulating
+    f = np.random.default_rng(3).standard_normal(13).astype(np.float32)
+    for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0)):
+        x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
+        y = np.random.default_rng(axis + 5).standard_normal(shape).astype(np.float32)
+        Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
+        np.testing.assert_allclose(Ax, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
+        out = dev(rt, x)
+        ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
+        assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)

@@ -62,9 +62,20 @@ def _launch(rt, kernel, total: int, *args) -> None:
     kernel(rt.queue, (round_up(max(int(total), 1), GROUP),), None, *args)
 
 
-def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args) -> None:
-    """2-D range of the axis kernels: (n * inner rounded up, outer)."""
-    kernel(rt.queue, (round_up(max(int(n) * int(inner), 1), GROUP), max(int(outer), 1)), None, *args)
+CONV_RUN = 8          # consecutive elements per work-item of conv_axis / v_conv_axis (CONV_RUN there)
+
+
+def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1) -> None:
+    """2-D range of the axis kernels: (ceil(n * inner / run) rounded up, outer); a work-item
+    computes `run` consecutive elements of a line."""
+    items = -(-max(int(n) * int(inner), 1) // run)
+    kernel(rt.queue, (round_up(items, GROUP), max(int(outer), 1)), None, *args)
+
+
+def _resample_options(q: int) -> List[str]:
+    """Build options of the resampling kernels: the factor a = p / q as constants RP, RQ."""
+    p, q = rational_factor(q)
+    return [f"-DRP={p}", f"-DRQ={q}"]
 
 
 def _filter_array(rt, f) -> Tuple[cla.Array, int]:
@@ -101,7 +112,7 @@ def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None) -
     outer, n, inner = _dims(x.shape, axis)
     out = _empty(rt, x.shape) if out is None else out
     _launch_axis(rt, rt.kernel(KFILE, "conv_axis"), n, inner, outer, x.data, out.data, farr.data,
-            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner))
+            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), run=CONV_RUN)
     return out
 
 
@@ -116,7 +127,8 @@ def v_conv_axis(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] = N
             raise ValueError("accumulate needs out")
         out = _empty(rt, v_out.shape)
     _launch_axis(rt, rt.kernel(KFILE, "v_conv_axis"), n, inner, outer, v_out.data, out.data, farr.data,
-            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)))
+            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)),
+            run=CONV_RUN)
     return out
 
 
@@ -133,14 +145,14 @@ def conv_cols(rt, img: cla.Array, f, out=None) -> cla.Array:
 def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] = None) -> cla.Array:
     """Resample x along axis by a = (q + 1) / q; that axis becomes resampled_length(n, q) long."""
     _check(x, "x")
-    p, q = rational_factor(q)
+    q = int(q)
     outer, n, inner = _dims(x.shape, axis)
     n_out = resampled_length(n, q)
     shape = list(x.shape)
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
-    _launch_axis(rt, rt.kernel(KFILE, "resample_axis"), n_out, inner, outer, x.data, out.data, np.int32(p), np.int32(q),
-            np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner))
+    _launch_axis(rt, rt.kernel(KFILE, "resample_axis", _resample_options(q)), n_out, inner, outer, x.data,
+                 out.data, np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner))
     return out
 
 
@@ -148,7 +160,7 @@ def v_resample_axis(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
                     out: Optional[cla.Array] = None, accumulate: bool = False) -> cla.Array:
     """Adjoint of resample_axis (n_in: the input length along axis)."""
     _check(v_out, "v_out")
-    p, q = rational_factor(q)
+    q = int(q)
     outer, n_out, inner = _dims(v_out.shape, axis)
     if resampled_length(n_in, q) != n_out:
         raise ValueError(f"n_in={n_in} does not resample to {n_out} with q={q}")
@@ -158,9 +170,9 @@ def v_resample_axis(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
-    _launch_axis(rt, rt.kernel(KFILE, "v_resample_axis"), n_in, inner, outer, v_out.data, out.data, np.int32(p),
-            np.int32(q), np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
-            np.int32(bool(accumulate)))
+    _launch_axis(rt, rt.kernel(KFILE, "v_resample_axis", _resample_options(q)), n_in, inner, outer, v_out.data,
+                 out.data, np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
+                 np.int32(bool(accumulate)))
     return out
 
 
