@@ -1,8 +1,9 @@
 /* Adam on the device: one launch updates every parameter group.
  *
- * The global id runs over the concatenation of the groups' flattened elements:
- * [0, n0) is group 0, [n0, n0 + n1) group 1, ... (host order: means, scales,
- * quat_l, quat_r, opacity, sh, phase; see endowave_cl/ops/adam.py).
+ A work-item updates a run of ADAM_RUN consecutive elements of one group, as 8-wide vectors (a
+ * group's last, shorter run element by element).  The global id runs over the concatenation of the
+ * groups' runs: [0, r0) are group 0's ceil(n0 / ADAM_RUN) runs, [r0, r0 + r1) group 1's, ... (host
+ * order: means, scales, quat_l, quat_r, opacity, sh, phase; see endowave_cl/ops/adam.py).
  *
  * Per-element learning rate inside a group: an element at column c = j % row_len
  * of its row uses lr_a when c < split, else lr_b.  This gives
@@ -24,13 +25,15 @@
     __global float *v##k, const int n##k, const int row##k, const int split##k,         \
     const float lra##k, const float lrb##k
 
+#define ADAM_RUN 8   /* elements per work-item (float8) */
+
 #define GROUP_DISPATCH(k)                                                               \
-    if (i < n##k) {                                                                     \
-        adam_element(p##k, g##k, m##k, v##k, i, row##k, split##k, lra##k, lrb##k,       \
-                     beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);                         \
+    if (i < (n##k + ADAM_RUN - 1) / ADAM_RUN) {                                         \
+        adam_run(p##k, g##k, m##k, v##k, n##k, i * ADAM_RUN, row##k, split##k, lra##k,  \
+                 lrb##k, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);         \
         return;                                                                         \
     }                                                                                   \
-    i -= n##k;
+    i -= (n##k + ADAM_RUN - 1) / ADAM_RUN;
 
 inline void adam_element(__global float *p, __global const float *g, __global float *m,
                          __global float *v, const int j, const int row, const int split,
@@ -46,6 +49,37 @@ inline void adam_element(__global float *p, __global const float *g, __global fl
     v[j] = vj;
     const float denom = sqrt(vj) * inv_sqrt_bc2 + eps;
     p[j] -= (lr * inv_bc1) * mj / denom;
+}
+
+/* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n: the same operations as adam_element on 8
+ * lanes; frozen lanes (lr 0) store back their old values. */
+inline void adam_run(__global float *p, __global const float *g, __global float *m,
+                     __global float *v, const int n, const int j0, const int row, const int split,
+                     const float lra, const float lrb, const float beta1, const float beta2,
+                     const float omb1, const float omb2, const float eps, const float inv_bc1,
+                     const float inv_sqrt_bc2) {
+    if (j0 + ADAM_RUN > n) {   /* the group's last, shorter run */
+        for (int j = j0; j < n; j++)
+            adam_element(p, g, m, v, j, row, split, lra, lrb, beta1, beta2, omb1, omb2, eps, inv_bc1,
+                         inv_sqrt_bc2);
+        return;
+    }
+    float lr_l[ADAM_RUN];
+    int col = j0 % row;
+    for (int l = 0; l < ADAM_RUN; l++) {
+        lr_l[l] = col < split ? lra : lrb;
+        if (++col == row) col = 0;
+    }
+    const float8 lr = (float8)(lr_l[0], lr_l[1], lr_l[2], lr_l[3], lr_l[4], lr_l[5], lr_l[6], lr_l[7]);
+    const int8 frozen = lr == 0.0f;
+    const float8 gj = load8(g + j0), m0 = load8(m + j0), v0 = load8(v + j0), p0 = load8(p + j0);
+    const float8 mj = beta1 * m0 + omb1 * gj;
+    const float8 vj = beta2 * v0 + omb2 * gj * gj;
+    const float8 denom = sqrt(vj) * inv_sqrt_bc2 + eps;
+    const float8 pj = p0 - (lr * inv_bc1) * mj / denom;
+    store8(m + j0, frozen ? m0 : mj);
+    store8(v + j0, frozen ? v0 : vj);
+    store8(p + j0, frozen ? p0 : pj);
 }
 
 __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(3),

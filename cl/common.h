@@ -8,6 +8,18 @@
 #endif
 #define TILE_PIXELS (TILE * TILE)
 
+/* 8 consecutive floats at any (float-aligned) address, written element by element: PoCL calls
+ * vload8 / vstore8 out of line (a call per access, and the caller's vectors spilled around it),
+ * while the compiler merges these element accesses into one unaligned vector access. */
+inline float8 load8(__global const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+}
+
+inline void store8(__global float *p, float8 v) {
+    p[0] = v.s0; p[1] = v.s1; p[2] = v.s2; p[3] = v.s3;
+    p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
+}
+
 /* Add v to a float in global memory.  OpenCL 1.2 has no float atomics, so this is a
  * compare-and-swap loop on the bit pattern.  The value is never read with a plain load (Oclgrind
  * would report a race): the loop starts from the guess 0 and each failed atomic_cmpxchg returns the

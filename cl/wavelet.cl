@@ -30,21 +30,11 @@ inline int reflect_idx(int m, int n) {
 }
 
 /* The convolution kernels compute CONV_RUN = 8 consecutive elements of a line per work-item: in
- * the interior (no reflection) each tap is then one 8-wide load and multiply-add for all of them,
- * the same operations in the same order as the per-element path, which serves the border
- * elements.  (With one element per work-item PoCL ran a serial chain of scalar multiply-adds.)
- * The 8-wide loads and stores are written element by element: PoCL calls vload8 / vstore8 out of
- * line, while the compiler merges the element accesses into one unaligned vector access. */
+ * the interior (no reflection) each tap is then one 8-wide load (load8, common.h) and multiply-add
+ * for all of them, the same operations in the same order as the per-element path, which serves
+ * the border elements.  (With one element per work-item PoCL ran a serial chain of scalar
+ * multiply-adds.) */
 #define CONV_RUN 8
-
-inline float8 load8(__global const float *p) {
-    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
-}
-
-inline void store8(__global float *p, float8 v) {
-    p[0] = v.s0; p[1] = v.s1; p[2] = v.s2; p[3] = v.s3;
-    p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
-}
 
 /* sum_i f[i] line[reflect(x - (i - R)) * inner]: one element of conv_axis; line = &in[o, 0, k]. */
 inline float conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,

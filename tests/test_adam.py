@@ -65,6 +65,24 @@ def test_adam_matches_reference_over_steps_with_changing_lrs(rt):
     assert not np.array_equal(dev["opacity"], g.opacity)
 
 
+def test_adam_frozen_lanes_inside_a_run(rt):
+    """sh_rest = 0 and means_t = 0 freeze some columns of a row: within a kernel's 8-element run
+    the frozen lanes keep their values while the others step."""
+    g = Gaussians.random(small(23, 3), seed=5)
+
+    def sched(s):
+        return dict(LRS, sh_rest=0.0, means_t=0.0)
+
+    dev, ref = _run_both(rt, g, steps=small(3, 2), lr_sched=sched)
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
+    sh0, sh = g.sh.reshape(len(g.sh), -1), dev["sh"].reshape(len(g.sh), -1)
+    np.testing.assert_array_equal(sh[:, 3:], sh0[:, 3:])   # frozen: every coefficient but n = 0 DC
+    assert not np.array_equal(sh[:, :3], sh0[:, :3])
+    np.testing.assert_array_equal(dev["means"][:, 3], g.means[:, 3])
+    assert not np.array_equal(dev["means"][:, :3], g.means[:, :3])
+
+
 @pytest.mark.oclgrind
 def test_adam_tiny_oclgrind(rt):
     g = Gaussians.random(2, seed=2, degree=1, nt=1)

@@ -31,6 +31,7 @@ SH_REST_DIVISOR = 20.0    # 3DGS: feature_lr / 20 for every SH coefficient but t
 SH_DC_ELEMENTS = 3        # sh[:, 0, 0, :] is the first 3 floats of a Gaussian's sh row
 MEANS_XYZ_COLUMNS = 3     # means[:, :3] spatial, means[:, 3] time
 WORK_GROUP = 64
+ADAM_RUN = 8              # consecutive elements per work-item (ADAM_RUN in cl/adam.cl)
 MAX_ELEMENTS = 2 ** 31 - 1  # the kernel indexes with int
 
 
@@ -122,7 +123,7 @@ class DeviceAdam:
         inv_bc1 = 1.0 / (1.0 - b1 ** step)
         inv_sqrt_bc2 = 1.0 / math.sqrt(1.0 - b2 ** step)
         args = []
-        total = 0
+        total = runs = 0
         for n in PARAM_NAMES:
             p = self.params[n]
             row, split, lra, lrb = group_lr_layout(n, p.shape, self.lrs)
@@ -142,6 +143,7 @@ class DeviceAdam:
                      np.int32(count), np.int32(max(row, 1)), np.int32(split),
                      np.float32(lra), np.float32(lrb)]
             total += count
+            runs += -(-count // ADAM_RUN)
         if total > MAX_ELEMENTS:
             raise EndowaveError(f"Adam: {total} parameters exceed the kernel's int index range")
         self.step_count = step
@@ -151,7 +153,7 @@ class DeviceAdam:
                  np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
         k = self.rt.kernel("adam.cl", "adam_step")
         k.set_args(*args)
-        self._cl.enqueue_nd_range_kernel(self.rt.queue, k, (round_up(total, WORK_GROUP),), (WORK_GROUP,))
+        self._cl.enqueue_nd_range_kernel(self.rt.queue, k, (round_up(runs, WORK_GROUP),), (WORK_GROUP,))
 
     def reset_moments(self, name: str) -> None:
         """Zero one group's moments (3DGS does this for opacity at an opacity reset)."""
