@@ -36,14 +36,20 @@ inline int reflect_idx(int m, int n) {
  * multiply-adds.) */
 #define CONV_RUN 8
 
-/* sum_i f[i] line[reflect(x - (i - R)) * inner]: one element of conv_axis; line = &in[o, 0, k]. */
+/* sum_i f[i] line[reflect(x - (i - R)) * inner] (zero_border: the taps outside [0, n) dropped):
+ * one element of conv_axis; line = &in[o, 0, k]. */
 inline float conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,
-                       int x) {
+                       int x, int zero_border) {
     const int R = flen / 2;
     float acc = 0.0f;
     if (x - R >= 0 && x + R < n) {          /* interior: no reflection needed */
         for (int i = 0; i < flen; ++i)
             acc += f[i] * line[(size_t)(x - i + R) * inner];
+    } else if (zero_border) {
+        for (int i = 0; i < flen; ++i) {
+            const int m = x - i + R;
+            if (m >= 0 && m < n) acc += f[i] * line[(size_t)m * inner];
+        }
     } else {
         for (int i = 0; i < flen; ++i)
             acc += f[i] * line[(size_t)reflect_idx(x - i + R, n) * inner];
@@ -51,12 +57,13 @@ inline float conv_elem(__global const float *line, __global const float *f, int 
     return acc;
 }
 
-/* out[o, x, k] = sum_i f[i] in[o, reflect(x - (i - R)), k], R = flen / 2 (flen odd).
- * in, out: [outer, n, inner]; f: [flen].  Work-item (t, o) computes the flat elements
+/* out[o, x, k] = sum_i f[i] in[o, reflect(x - (i - R)), k], R = flen / 2 (flen odd); with
+ * zero_border != 0 the positions outside [0, n) count as zeros instead (zero padding, the blur of
+ * the SSIM loss).  in, out: [outer, n, inner]; f: [flen].  Work-item (t, o) computes the flat elements
  * x * inner + k = t * CONV_RUN ... t * CONV_RUN + CONV_RUN - 1 of line o. */
 __kernel void conv_axis(__global const float *in, __global float *out,
                         __global const float *f, const int flen,
-                        const int outer, const int n, const int inner) {
+                        const int outer, const int n, const int inner, const int zero_border) {
     const int xi0 = get_global_id(0) * CONV_RUN;    /* first x * inner + k of this work-item */
     const int o = get_global_id(1);
     const int len = n * inner;
@@ -74,7 +81,7 @@ __kernel void conv_axis(__global const float *in, __global float *out,
         const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
         for (int xi = xi0; xi < end; ++xi) {
             const int x = xi / inner;
-            out_o[xi] = conv_elem(in_o + (xi - x * inner), f, flen, n, inner, x);
+            out_o[xi] = conv_elem(in_o + (xi - x * inner), f, flen, n, inner, x, zero_border);
         }
     }
 }

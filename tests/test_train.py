@@ -96,7 +96,10 @@ def test_nan_step_is_caught_and_not_applied(rt, tiny_scene, tmp_path):
     scene = load_scene(tiny_scene)
     tr = Trainer(scene, _cfg(iterations=10, use_flow=False), tmp_path / "run", rt, log=lambda s: None)
     k = scene.train_indices[0]
-    tr.targets[k].image[5, 7, 1] = float("nan")   # a NaN in the data makes the loss NaN
+    img = tr.targets[k].dev.image                 # a NaN in the data makes the loss NaN
+    host = img.get()
+    host[5, 7, 1] = float("nan")
+    img.set(host)
     before = download(tr.params)
     with pytest.raises(TrainingDiverged, match="non-finite"):
         tr.train_step(k)

@@ -42,6 +42,19 @@ def test_conv_axis_matches_reference(rt, shape, axis, flen):
 
 
 @pytest.mark.parametrize("shape,axis", CONV_CASES)
+@pytest.mark.parametrize("flen", [1, 11, 13])
+def test_conv_axis_zero_border_and_its_adjoint(rt, shape, axis, flen):
+    """border="zero": numpy's 'same' convolution per line; adjoint = reversed filter, same border."""
+    x, y, f = rand(shape, flen + 2), rand(shape, flen + 3), rand(flen, flen + 4)
+    got = ops.conv_axis(rt, dev(rt, x), f, axis, border="zero").get()
+    ref = np.apply_along_axis(lambda line: np.convolve(line.astype(np.float64), f, "full")[flen // 2:][:line.size],
+                              axis, x)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    ATy = ops.conv_axis(rt, dev(rt, y), f[::-1].copy(), axis, border="zero").get()
+    assert dot(got, y) == pytest.approx(dot(x, ATy), rel=1e-5, abs=1e-4)
+
+
+@pytest.mark.parametrize("shape,axis", CONV_CASES)
 @pytest.mark.parametrize("flen", [3, 13, 17])
 def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
     x, y, f = rand(shape, 1), rand(shape, 2), rand(flen, 3)

@@ -1,8 +1,8 @@
-"""Image-space training losses (torch, on the host).
+"""Image-space training losses in torch: the definitions, and the reference of the device version.
 
-The trainer renders on the device, copies the rendered images here as leaf tensors with
-requires_grad, calls ``image_losses`` and backpropagates with torch autograd: the gradients of
-the rendered image / depth / flow are the gradient images that rasterize_bwd consumes.
+The trainer computes the same functions, and their gradient images for rasterize_bwd, with the
+OpenCL kernels of endowave_cl/train/device_losses.py (cl/image_loss.cl); tests/test_device_losses.py
+checks them against ``image_losses`` here and its torch autograd gradient.
 
 Images are channel-last float tensors: image [H, W, 3], depth [H, W], flow [H, W, 2];
 mask [H, W] with 1 = supervise (tissue), 0 = ignore (tool).  Every "masked mean" divides by the

@@ -3,14 +3,14 @@
 One step (``Trainer.train_step``) follows ../shared/DESIGN.md's data flow:
 
     render at t_k with flow to the next training frame   (project4d -> bin -> sort -> rasterize)
-    losses -> one scalar and the gradient image           (RGB L1 + D-SSIM, depth, flow: torch on
-                                                           the host; rational wavelet: OpenCL)
+    losses -> one scalar and the gradient image           (RGB L1 + D-SSIM, depth, flow, rational
+                                                           wavelet: OpenCL, train/device_losses.py)
     render_backward                                       (rasterize_bwd -> project4d_bwd)
     Adam                                                  (one fused OpenCL kernel)
 
-Parameters and Adam moments stay on the device; the host reads back the rendered channels (for
-the torch losses), a scalar per gradient group (the NaN guard), and the parameters only when
-densifying, checkpointing or exporting.
+Parameters, Adam moments, the rendered images and every frame's targets stay on the device; the
+host reads back a few loss sums per step, a flag per gradient group (the NaN guard), and the
+parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ import numpy as np
 from ..atomic import write_bytes_atomic
 from ..errors import EndowaveError
 from ..gaussians import Gaussians, download, upload
-from ..render import DEPTH, FLOW, RGB, render, render_backward
+from ..render import DEPTH, FLOW, render, render_backward
 
 
 class TrainingDiverged(EndowaveError):
@@ -35,15 +35,9 @@ class TrainingDiverged(EndowaveError):
 
 @dataclass
 class FrameTargets:
-    """What one training frame supervises, as torch tensors (and device copies for the wavelet loss)."""
-    image: "object"                    # torch [H, W, 3]
-    depth: Optional["object"]          # torch [H, W] or None
-    mask: Optional["object"]           # torch [H, W] (1 = tissue) or None
-    flow: Optional["object"]           # torch [H, W, 2] pseudo ground-truth flow to next_index, or None
-    flow_valid: Optional["object"]     # torch [H, W] consistency mask, or None
-    next_time: Optional[float]         # time of the frame the flow points to
-    image_dev: "object" = None         # cla [H, W, 3] for the wavelet loss
-    mask_dev: "object" = None          # cla [H, W] or None
+    """What one training frame supervises, on the device, and the time its flow points to."""
+    dev: "object"                      # device_losses.DeviceTargets
+    next_time: Optional[float]         # time of the frame the flow points to (None: no flow)
 
 
 def scene_extent(g: Gaussians) -> float:
@@ -111,30 +105,20 @@ class Trainer:
                       "max_radius": cla.zeros(q, (n,), np.float32)}
 
     def _prepare_targets(self) -> Dict[int, FrameTargets]:
-        import pyopencl.array as cla
-        import torch
+        from .device_losses import prepare_targets
         sc, c = self.scene, self.cfg
         flows = {}
         if c.use_flow:
             from ..data.flow import flow_for_scene
             flows = dict(flow_for_scene(sc, method=getattr(c, "flow_method", "dis"), progress=False))
         out = {}
-        order = list(sc.train_indices)
-        for j, k in enumerate(order):
+        for k in sc.train_indices:
             f = sc.frames[k]
             pair = flows.get(k)
-            mask = None if f.mask is None else torch.from_numpy(np.ascontiguousarray(f.mask, np.float32))
-            depth = None
-            if c.use_depth and f.depth is not None:
-                depth = torch.from_numpy(np.ascontiguousarray(f.depth, np.float32))
             out[k] = FrameTargets(
-                image=torch.from_numpy(np.ascontiguousarray(f.image, np.float32)), depth=depth, mask=mask,
-                flow=None if pair is None else torch.from_numpy(pair.flow),
-                flow_valid=None if pair is None else torch.from_numpy(pair.valid),
-                next_time=None if pair is None else float(sc.frames[pair.dst].time),
-                image_dev=cla.to_device(self.rt.queue, np.ascontiguousarray(f.image, np.float32)) if c.use_wavelet else None,
-                mask_dev=(cla.to_device(self.rt.queue, np.ascontiguousarray(f.mask, np.float32))
-                          if (c.use_wavelet and f.mask is not None) else None))
+                prepare_targets(self.rt, f.image, f.mask, f.depth if c.use_depth else None,
+                                None if pair is None else pair.flow, None if pair is None else pair.valid),
+                next_time=None if pair is None else float(sc.frames[pair.dst].time))
         return out
 
     # ------------------------------------------------------------------ one step
@@ -151,33 +135,11 @@ class Trainer:
         return parts
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
-        """Total loss, its parts, and the gradient image v_features [H, W, C] on the device."""
-        import pyopencl.array as cla
-        import torch
-
-        from .losses import image_losses
-        c = self.cfg
-        feats = torch.from_numpy(out.features.get()).requires_grad_(True)   # [H, W, C]
-        pred = {"image": feats[..., RGB], "depth": feats[..., DEPTH], "flow": feats[..., FLOW]}
-        target = {"image": tgt.image, "mask": tgt.mask, "depth": tgt.depth,
-                  "flow": tgt.flow if c.use_flow else None, "flow_valid": tgt.flow_valid if c.use_flow else None}
-        total, parts = image_losses(pred, target, c)
-        total.backward()
-        v = feats.grad.numpy()
-        total_value = float(total.detach())
-        if c.use_wavelet and c.lambda_wavelet > 0:
-            from ..wavelet.loss import wavelet_loss_and_grad
-            rgb = cla.to_device(self.rt.queue, np.ascontiguousarray(feats.detach().numpy()[..., RGB]))
-            wl, v_rgb = wavelet_loss_and_grad(self.rt, rgb, tgt.image_dev, tgt.mask_dev, self.wavelet_config)
-            v[..., RGB] += c.lambda_wavelet * v_rgb.get()
-            parts["wavelet"] = wl
-            total_value += c.lambda_wavelet * wl
-        parts["total"] = total_value
-        with torch.no_grad():  # training PSNR on the supervised (tissue) pixels
-            sq = (feats[..., RGB] - tgt.image) ** 2
-            mse = float(sq.mean() if tgt.mask is None else (sq * tgt.mask[..., None]).sum() / (3 * tgt.mask.sum()).clamp(min=1))
-        parts["psnr"] = 10 * math.log10(1.0 / max(mse, 1e-12))
-        return total_value, parts, cla.to_device(self.rt.queue, np.ascontiguousarray(v, np.float32))
+        """Total loss, its parts (and the training PSNR), and the gradient image v_features
+        [H, W, C], all computed on the device (train/device_losses.py)."""
+        from .device_losses import image_losses_and_grad
+        return image_losses_and_grad(self.rt, out.features, tgt.dev, self.cfg, {"depth": DEPTH, "flow": FLOW.start},
+                                     self.wavelet_config)
 
     @property
     def wavelet_config(self):

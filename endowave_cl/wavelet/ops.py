@@ -105,14 +105,23 @@ def device_filters(rt, q: int) -> Dict[str, cla.Array]:
 # axis-generic ops
 # ---------------------------------------------------------------------------------------------
 
-def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None) -> cla.Array:
-    """Convolution of x with the odd-length filter f along axis (reflect border); same shape."""
+BORDERS = ("reflect", "zero")
+
+
+def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
+              border: str = "reflect") -> cla.Array:
+    """Convolution of x with the odd-length filter f along axis; same shape.  border "reflect"
+    (whole-sample symmetric, the wavelet's rule) or "zero" (zero padding; its adjoint is the
+    convolution with the reversed filter and the same border)."""
     _check(x, "x")
+    if border not in BORDERS:
+        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
     farr, flen = _filter_array(rt, f)
     outer, n, inner = _dims(x.shape, axis)
     out = _empty(rt, x.shape) if out is None else out
     _launch_axis(rt, rt.kernel(KFILE, "conv_axis"), n, inner, outer, x.data, out.data, farr.data,
-            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), run=CONV_RUN)
+            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(border == "zero"),
+            run=CONV_RUN)
     return out
 
 

@@ -1,0 +1,168 @@
+/* The training step's image losses on the device: masked L1 + D-SSIM of the colour, L1 of the
+ * depth, squared endpoint error of the flow, and their gradient with respect to the rendered
+ * feature image.  The same functions as endowave_cl/train/losses.py (the torch reference, whose
+ * module doc gives the choices); host side endowave_cl/train/device_losses.py.  OpenCL C 1.2.
+ *
+ * Images are channel-last.  feat [npix, CF]: the rendered channels, colour in 0..2, depth in
+ * CH_DEPTH, flow in CH_FLOW, CH_FLOW + 1 (build options -DCF, -DCH_DEPTH, -DCH_FLOW).
+ * The weight maps are per-frame constants the host prepares: mask [npix] (1 = supervise, all ones
+ * without a tool mask), depth_w = (gt depth > 0) * mask, flow_w = consistency mask * mask.
+ *
+ * SSIM (3DGS's: 11 x 11 Gaussian window, zero padding, C1 = 0.01^2, C2 = 0.03^2) runs as
+ *   ssim_stack  -> five maps of the masked colours (x m, y m, (x m)^2, (y m)^2, x m y m), 15 ch.
+ *   blur        -> conv_axis (cl/wavelet.cl) along W then H with border "zero"
+ *   image_loss_terms -> per-pixel loss sums and gradients; dL/d(mu_x, E[xx], E[xy]) per channel
+ *   blur adjoint     -> the same convolutions with the reversed window
+ *   ssim_grad_combine -> back through the five maps to the colour channels.
+ * With S = A1 A2 / (B1 B2), A1 = 2 mx my + C1, A2 = 2 sxy + C2, B1 = mx^2 + my^2 + C1,
+ * B2 = sxx + syy + C2 (sxx = exx - mx^2, syy = eyy - my^2, sxy = exy - mx my):
+ *   dS/dmx = 2 my (A2 - A1) / (B1 B2) - 2 mx S (B2 - B1) / (B1 B2)
+ *   dS/dexx = -S / B2,  dS/dexy = 2 A1 / (B1 B2).
+ */
+#include "common.h"
+
+#ifndef CF
+#define CF 6
+#endif
+#ifndef CH_DEPTH
+#define CH_DEPTH 3
+#endif
+#ifndef CH_FLOW
+#define CH_FLOW 4
+#endif
+#define SSIM_C1 (0.01f * 0.01f)
+#define SSIM_C2 (0.03f * 0.03f)
+#define NMAP 15          /* ssim_stack channels: 5 maps x 3 colours, map-major */
+#define NGRAD 9          /* SSIM gradient maps: d/d mu_x, d/d E[xx], d/d E[xy], x 3 colours */
+#define NSUM 5           /* partial sums: |x - y| m, S m, |d - d_gt| w, |f - f_gt|^2 w, (x - y)^2 m */
+
+/* stack[p, map * 3 + c] for the five SSIM maps of the masked colours. */
+__kernel void ssim_stack(__global const float *feat,   /* [npix, CF] */
+                         __global const float *gt,     /* [npix, 3] */
+                         __global const float *mask,   /* [npix] */
+                         const int npix,
+                         __global float *stack) {      /* [npix, NMAP] */
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    const float m = mask[p];
+    __global float *s = stack + (size_t)p * NMAP;
+    for (int c = 0; c < 3; c++) {
+        const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
+        s[c] = x;
+        s[3 + c] = y;
+        s[6 + c] = x * x;
+        s[9 + c] = y * y;
+        s[12 + c] = x * y;
+    }
+}
+
+inline float sign_of(float d) {
+    return d > 0.0f ? 1.0f : (d < 0.0f ? -1.0f : 0.0f);   /* 0 at 0, as torch's abs gradient */
+}
+
+/* Per pixel: the loss terms (summed per work-group into partial[group, NSUM]) and the gradients:
+ * v_feat [npix, CF] of the L1, depth and flow terms (colour: SSIM added by ssim_grad_combine),
+ * g_ssim [npix, NGRAD] = dL/d(blurred mu_x, E[xx], E[xy]) per colour.
+ * w_l1 = lambda_rgb (1 - lambda_dssim) / n_rgb, w_ssim = lambda_rgb lambda_dssim / n_rgb
+ * (n_rgb = 3 sum(mask), at least 1), w_depth = lambda_depth / sum(depth_w), w_flow likewise;
+ * has_depth / has_flow = 0 leave those channels' gradients 0.  Local size: a power of two. */
+__kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
+                               __global const float *gt,       /* [npix, 3] */
+                               __global const float *mask,     /* [npix] */
+                               __global const float *blurred,  /* [npix, NMAP] */
+                               __global const float *depth_gt, /* [npix] */
+                               __global const float *depth_w,  /* [npix] */
+                               __global const float *flow_gt,  /* [npix, 2] */
+                               __global const float *flow_w,   /* [npix] */
+                               const int has_depth, const int has_flow,
+                               const float w_l1, const float w_ssim, const float w_depth,
+                               const float w_flow, const int npix,
+                               __global float *v_feat,         /* [npix, CF] */
+                               __global float *g_ssim,         /* [npix, NGRAD] */
+                               __global float *partial,        /* [groups, NSUM] */
+                               __local float *scratch) {       /* [NSUM, local size] */
+    const int p = get_global_id(0);
+    const int lid = get_local_id(0), lsize = get_local_size(0);
+    float sum[NSUM];
+    for (int k = 0; k < NSUM; k++) sum[k] = 0.0f;
+    if (p < npix) {
+        const float m = mask[p];
+        __global const float *f = feat + (size_t)p * CF;
+        __global const float *b = blurred + (size_t)p * NMAP;
+        __global float *v = v_feat + (size_t)p * CF;
+        __global float *g = g_ssim + (size_t)p * NGRAD;
+        for (int k = 0; k < CF; k++) v[k] = 0.0f;
+        for (int c = 0; c < 3; c++) {
+            const float d = f[c] - gt[p * 3 + c];
+            sum[0] += fabs(d) * m;
+            sum[4] += d * d * m;
+            v[c] = w_l1 * sign_of(d) * m;
+            const float mx = b[c], my = b[3 + c], exx = b[6 + c], eyy = b[9 + c], exy = b[12 + c];
+            const float sxx = exx - mx * mx, syy = eyy - my * my, sxy = exy - mx * my;
+            const float A1 = 2.0f * mx * my + SSIM_C1, A2 = 2.0f * sxy + SSIM_C2;
+            const float B1 = mx * mx + my * my + SSIM_C1, B2 = sxx + syy + SSIM_C2;
+            const float inv_den = 1.0f / (B1 * B2);
+            const float S = A1 * A2 * inv_den;
+            sum[1] += S * m;
+            const float gS = -w_ssim * m;              /* dL/dS: L has -lambda_dssim mean(S) */
+            g[c] = gS * (2.0f * my * (A2 - A1) * inv_den - 2.0f * mx * S * (B2 - B1) * inv_den);
+            g[3 + c] = gS * (-S / B2);
+            g[6 + c] = gS * (2.0f * A1 * inv_den);
+        }
+        if (has_depth) {
+            const float w = depth_w[p];
+            const float d = f[CH_DEPTH] - depth_gt[p];
+            sum[2] += fabs(d) * w;
+            v[CH_DEPTH] = w_depth * sign_of(d) * w;
+        }
+        if (has_flow) {
+            const float w = flow_w[p];
+            for (int k = 0; k < 2; k++) {
+                const float e = f[CH_FLOW + k] - flow_gt[p * 2 + k];
+                sum[3] += e * e * w;
+                v[CH_FLOW + k] = w_flow * 2.0f * e * w;
+            }
+        }
+    }
+    for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] = sum[k];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int s = lsize / 2; s > 0; s >>= 1) {
+        if (lid < s)
+            for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] += scratch[k * lsize + lid + s];
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (lid < NSUM) partial[get_group_id(0) * NSUM + lid] = scratch[lid * lsize];
+}
+
+/* v_feat[p, c] += m (gb_mu + 2 x m gb_xx + y m gb_xy) for the colours: the SSIM gradient through
+ * the maps of ssim_stack; gb = the blur adjoint of g_ssim. */
+__kernel void ssim_grad_combine(__global const float *feat,   /* [npix, CF] */
+                                __global const float *gt,     /* [npix, 3] */
+                                __global const float *mask,   /* [npix] */
+                                __global const float *gb,     /* [npix, NGRAD] */
+                                const int npix,
+                                __global float *v_feat) {     /* [npix, CF] */
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    const float m = mask[p];
+    for (int c = 0; c < 3; c++) {
+        const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
+        const __global float *q = gb + (size_t)p * NGRAD;
+        v_feat[(size_t)p * CF + c] += m * (q[c] + 2.0f * x * q[3 + c] + y * q[6 + c]);
+    }
+}
+
+/* out[p, k] = feat[p, k] for k < 3: the colour channels as a contiguous [npix, 3] image. */
+__kernel void take_rgb(__global const float *feat, const int npix, __global float *out) {
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    for (int c = 0; c < 3; c++) out[p * 3 + c] = feat[(size_t)p * CF + c];
+}
+
+/* v_feat[p, k] += scale * v_rgb[p, k] for k < 3. */
+__kernel void add_rgb(__global float *v_feat, __global const float *v_rgb, const float scale,
+                      const int npix) {
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    for (int c = 0; c < 3; c++) v_feat[(size_t)p * CF + c] += scale * v_rgb[p * 3 + c];
+}

@@ -1,0 +1,160 @@
+"""The training step's image losses on the device (kernels in cl/image_loss.cl).
+
+``image_losses_and_grad`` computes what ``losses.image_losses`` (the torch reference, whose module
+doc gives the definitions and choices) computes, plus the rational-wavelet term, from the rendered
+feature image that stays on the device, and returns the gradient image for the adjoints: nothing
+but a handful of loss sums crosses to the host.
+
+    feat [H, W, CF] --ssim_stack--> maps [H, W, 15] --blur W, H--> blurred
+          |                                                            |
+          +------------------- image_loss_terms <----------------------+
+                  |  v_feat (L1, depth, flow)    g_ssim [H, W, 9]
+                  |                                 |  blur adjoint (reversed window)
+                  +------ ssim_grad_combine <-------+
+                  +------ + lambda_wavelet * v_rgb (wavelet.loss_and_grad on take_rgb(feat))
+"""
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+from ..runtime import round_up
+from .losses import SSIM_SIGMA, SSIM_WINDOW
+
+KFILE = "image_loss.cl"
+LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
+NMAP, NGRAD, NSUM = 15, 9, 5   # as in cl/image_loss.cl
+
+
+@dataclass
+class DeviceTargets:
+    """One frame's supervision on the device, with the per-frame weight maps and their sums."""
+    image: object                 # cla [H, W, 3]
+    mask: object                  # cla [H, W]: 1 = supervise (all ones without a tool mask)
+    has_mask: bool
+    n_rgb: float                  # 3 * sum(mask): the colour terms' denominator (at least 1)
+    depth: Optional[object]       # cla [H, W] or None
+    depth_w: Optional[object]     # cla [H, W]: (depth > 0) * mask
+    n_depth: float
+    flow: Optional[object]        # cla [H, W, 2] or None
+    flow_w: Optional[object]      # cla [H, W]: consistency mask * mask
+    n_flow: float
+
+
+def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
+                    flow: Optional[np.ndarray] = None, flow_valid: Optional[np.ndarray] = None) -> DeviceTargets:
+    """Upload a frame's targets (numpy, channel-last) with the weight maps of losses.image_losses."""
+    import pyopencl.array as cla
+
+    def up(a):
+        return cla.to_device(rt.queue, np.ascontiguousarray(a, np.float32))
+
+    H, W = image.shape[:2]
+    m = np.ones((H, W), np.float32) if mask is None else np.asarray(mask, np.float32)
+    t = DeviceTargets(up(image), up(m), mask is not None, max(3.0 * float(m.sum(dtype=np.float64)), 1.0),
+                      None, None, 1.0, None, None, 1.0)
+    if depth is not None:
+        dw = (np.asarray(depth) > 0).astype(np.float32) * m
+        t.depth, t.depth_w, t.n_depth = up(depth), up(dw), max(float(dw.sum(dtype=np.float64)), 1.0)
+    if flow is not None:
+        fw = m if flow_valid is None else np.asarray(flow_valid, np.float32) * m
+        t.flow, t.flow_w, t.n_flow = up(flow), up(fw), max(float(fw.sum(dtype=np.float64)), 1.0)
+    return t
+
+
+_WINDOWS = weakref.WeakKeyDictionary()   # Runtime -> the SSIM window on its device
+
+
+def _window(rt) -> object:
+    """The SSIM window (losses.py's 1D Gaussian) as a float32 device array, cached per runtime."""
+    w = _WINDOWS.get(rt)
+    if w is None:
+        import pyopencl.array as cla
+        x = np.arange(SSIM_WINDOW, dtype=np.float64) - (SSIM_WINDOW - 1) / 2.0
+        g = np.exp(-x * x / (2 * SSIM_SIGMA * SSIM_SIGMA))
+        w = cla.to_device(rt.queue, (g / g.sum()).astype(np.float32))  # symmetric: its own reverse
+        _WINDOWS[rt] = w
+    return w
+
+
+def _blur(rt, x, window) -> object:
+    """The separable SSIM blur (zero padding) of x [H, W, K]: along W, then along H."""
+    from ..wavelet.ops import conv_axis
+    return conv_axis(rt, conv_axis(rt, x, window, axis=1, border="zero"), window, axis=0, border="zero")
+
+
+def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
+                          wavelet_config=None) -> Tuple[float, Dict[str, float], object]:
+    """(total loss, its parts, v_features [H, W, CF]) for the rendered features [H, W, CF] (cla).
+
+    cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet); channels: {"depth": k,
+    "flow": k} (the colour is channels 0..2).  Terms whose targets are missing are left out, as
+    in losses.image_losses.  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
+    """
+    import pyopencl as cl
+    import pyopencl.array as cla
+
+    H, W, CF = (int(s) for s in features.shape)
+    npix = H * W
+    q = rt.queue
+    opts = [f"-DCF={CF}", f"-DCH_DEPTH={int(channels['depth'])}", f"-DCH_FLOW={int(channels['flow'])}"]
+    use_depth = bool(cfg.use_depth and cfg.lambda_depth > 0 and tgt.depth is not None)
+    use_flow = bool(cfg.use_flow and cfg.lambda_flow > 0 and tgt.flow is not None)
+    window = _window(rt)
+    gsize = (round_up(max(npix, 1), LOCAL),)
+
+    maps = cla.empty(q, (H, W, NMAP), np.float32)
+    rt.kernel(KFILE, "ssim_stack", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
+                                         np.int32(npix), maps.data)
+    blurred = _blur(rt, maps, window)
+
+    v = cla.empty(q, (H, W, CF), np.float32)
+    g_ssim = cla.empty(q, (H, W, NGRAD), np.float32)
+    groups = gsize[0] // LOCAL
+    partial = cla.empty(q, (groups, NSUM), np.float32)
+    w_rgb = cfg.lambda_rgb / tgt.n_rgb
+    dummy = tgt.mask.data
+    rt.kernel(KFILE, "image_loss_terms", opts)(
+        q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data, blurred.data,
+        tgt.depth.data if use_depth else dummy, tgt.depth_w.data if use_depth else dummy,
+        tgt.flow.data if use_flow else dummy, tgt.flow_w.data if use_flow else dummy,
+        np.int32(use_depth), np.int32(use_flow),
+        np.float32(w_rgb * (1.0 - cfg.lambda_dssim)), np.float32(w_rgb * cfg.lambda_dssim),
+        np.float32(cfg.lambda_depth / tgt.n_depth), np.float32(cfg.lambda_flow / tgt.n_flow), np.int32(npix),
+        v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
+    gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
+    rt.kernel(KFILE, "ssim_grad_combine", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data,
+                                                tgt.mask.data, gb.data, np.int32(npix), v.data)
+
+    parts: Dict[str, float] = {}
+    wavelet = None
+    if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
+        from ..wavelet.loss import wavelet_loss_and_grad
+        rgb = cla.empty(q, (H, W, 3), np.float32)
+        rt.kernel(KFILE, "take_rgb", opts)(q, gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
+        wavelet, v_rgb = wavelet_loss_and_grad(rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None,
+                                               wavelet_config)
+        rt.kernel(KFILE, "add_rgb", opts)(q, gsize, (LOCAL,), v.data, v_rgb.data,
+                                          np.float32(cfg.lambda_wavelet), np.int32(npix))
+
+    s = partial.get().astype(np.float64).sum(axis=0)   # [NSUM]
+    l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb
+    rgb_loss = (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1.0 - ssim)
+    total = cfg.lambda_rgb * rgb_loss
+    parts.update(l1=float(l1), ssim=float(ssim), rgb=float(rgb_loss))
+    if use_depth:
+        parts["depth"] = float(s[2] / tgt.n_depth)
+        total += cfg.lambda_depth * parts["depth"]
+    if use_flow:
+        parts["flow"] = float(s[3] / tgt.n_flow)
+        total += cfg.lambda_flow * parts["flow"]
+    if wavelet is not None:
+        parts["wavelet"] = float(wavelet)
+        total += cfg.lambda_wavelet * wavelet
+    parts["total"] = float(total)
+    mse = s[4] / tgt.n_rgb
+    parts["psnr"] = float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
+    return float(total), parts, v

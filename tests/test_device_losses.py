@@ -1,0 +1,104 @@
+"""The device image losses (cl/image_loss.cl) against the torch reference losses.image_losses."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+import torch
+
+from conftest import small
+from endowave_cl.train.config import TrainConfig
+from endowave_cl.train.device_losses import image_losses_and_grad, prepare_targets
+from endowave_cl.train.losses import image_losses
+from endowave_cl.wavelet.loss import WaveletConfig, wavelet_loss_and_grad
+
+CHANNELS = {"depth": 3, "flow": 4}
+
+
+def frame(seed, H, W, mask=True, depth=True, flow=True, flow_valid=True):
+    rng = np.random.default_rng(seed)
+    f = dict(image=rng.uniform(0, 1, (H, W, 3)).astype(np.float32))
+    f["mask"] = (rng.uniform(size=(H, W)) > 0.3).astype(np.float32) if mask else None
+    f["depth"] = np.where(rng.uniform(size=(H, W)) > 0.2, rng.uniform(1, 5, (H, W)), 0).astype(np.float32) \
+        if depth else None
+    f["flow"] = rng.normal(0, 2, (H, W, 2)).astype(np.float32) if flow else None
+    f["flow_valid"] = (rng.uniform(size=(H, W)) > 0.25).astype(np.float32) if flow and flow_valid else None
+    feats = np.concatenate([np.clip(f["image"] + rng.normal(0, 0.2, (H, W, 3)), 0, 1),
+                            rng.uniform(1, 5, (H, W, 1)), rng.normal(0, 2, (H, W, 2))], -1).astype(np.float32)
+    # a few exact matches: the L1 gradient there is 0, as torch's
+    feats[0, 0, :3] = f["image"][0, 0]
+    return f, feats
+
+
+def reference(f, feats, cfg):
+    x = torch.from_numpy(feats.copy()).requires_grad_(True)
+    pred = {"image": x[..., :3], "depth": x[..., 3], "flow": x[..., 4:6]}
+    tgt = {k: (None if v is None else torch.from_numpy(v)) for k, v in f.items()}
+    total, parts = image_losses(pred, tgt, cfg)
+    total.backward()
+    return float(total.detach()), parts, x.grad.numpy()
+
+
+CASES = [dict(), dict(mask=False), dict(depth=False), dict(flow=False), dict(flow_valid=False),
+         dict(mask=False, depth=False, flow=False)]
+
+
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("size", [(23, 31), (64, 48)])
+def test_device_losses_match_torch(rt, case, size):
+    H, W = size
+    f, feats = frame(H + 100 * CASES.index(case), H, W, **case)
+    cfg = TrainConfig(use_wavelet=False, lambda_flow=0.05)
+    ref_total, ref_parts, ref_grad = reference(f, feats, cfg)
+    tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
+    total, parts, v = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt, cfg, CHANNELS)
+    assert total == pytest.approx(ref_total, rel=1e-5, abs=1e-6)
+    for k, val in ref_parts.items():
+        assert parts[k] == pytest.approx(val, rel=1e-5, abs=1e-6), k
+    assert set(ref_parts) <= set(parts)
+    got = v.get()
+    scale = np.abs(ref_grad).max()
+    np.testing.assert_allclose(got, ref_grad, rtol=1e-4, atol=1e-5 * scale)
+    if f["mask"] is not None:   # no gradient on tool pixels, in any channel
+        assert not got[f["mask"] == 0].any()
+
+
+def test_device_losses_add_the_wavelet_term(rt):
+    f, feats = frame(7, 33, 40)
+    cfg = TrainConfig()
+    wcfg = WaveletConfig()
+    tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
+    dev = cla.to_device(rt.queue, feats)
+    t0, p0, v0 = image_losses_and_grad(rt, dev, tgt, TrainConfig(use_wavelet=False), CHANNELS)
+    t1, p1, v1 = image_losses_and_grad(rt, dev, tgt, cfg, CHANNELS, wavelet_config=wcfg)
+    wl, v_rgb = wavelet_loss_and_grad(rt, cla.to_device(rt.queue, np.ascontiguousarray(feats[..., :3])),
+                                      tgt.image, tgt.mask, wcfg)
+    assert p1["wavelet"] == pytest.approx(wl, rel=1e-6)
+    assert t1 == pytest.approx(t0 + cfg.lambda_wavelet * wl, rel=1e-6)
+    want = v0.get()
+    want[..., :3] += cfg.lambda_wavelet * v_rgb.get()
+    np.testing.assert_allclose(v1.get(), want, rtol=1e-5, atol=1e-7)
+
+
+def test_device_losses_psnr_and_perfect_prediction(rt):
+    f, feats = frame(3, 20, 24, depth=False, flow=False)
+    feats[..., :3] = f["image"]
+    tgt = prepare_targets(rt, f["image"], f["mask"])
+    total, parts, v = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt,
+                                            TrainConfig(use_wavelet=False), CHANNELS)
+    assert parts["l1"] == 0 and parts["ssim"] == pytest.approx(1.0, abs=1e-5) and parts["psnr"] == 120.0
+    assert total == pytest.approx(0.0, abs=1e-5)
+    np.testing.assert_allclose(v.get(), 0.0, atol=1e-6)
+
+
+@pytest.mark.oclgrind
+def test_device_losses_tiny_oclgrind(rt):
+    H, W = small(13, 9), small(17, 11)
+    f, feats = frame(5, H, W)
+    cfg = TrainConfig(lambda_flow=0.05)
+    ref_total, _, ref_grad = reference(f, feats, TrainConfig(use_wavelet=False, lambda_flow=0.05))
+    tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
+    total, parts, v = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt, cfg, CHANNELS,
+                                            wavelet_config=WaveletConfig())
+    assert total == pytest.approx(ref_total + parts["wavelet"], rel=1e-5)
+    assert np.isfinite(v.get()).all()
