@@ -91,6 +91,16 @@ def test_device_losses_psnr_and_perfect_prediction(rt):
     np.testing.assert_allclose(v.get(), 0.0, atol=1e-6)
 
 
+def test_device_losses_reject_mismatched_inputs(rt):
+    f, feats = frame(9, 10, 12)
+    tgt = prepare_targets(rt, f["image"], f["mask"])
+    cfg = TrainConfig(use_wavelet=False)
+    with pytest.raises(ValueError, match="does not match"):
+        image_losses_and_grad(rt, cla.to_device(rt.queue, feats[:9]), tgt, cfg, CHANNELS)
+    with pytest.raises(ValueError, match="do not fit"):
+        image_losses_and_grad(rt, cla.to_device(rt.queue, np.ascontiguousarray(feats[..., :5])), tgt, cfg, CHANNELS)
+
+
 @pytest.mark.oclgrind
 def test_device_losses_tiny_oclgrind(rt):
     H, W = small(13, 9), small(17, 11)

@@ -97,7 +97,13 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     import pyopencl as cl
     import pyopencl.array as cla
 
+    if features.ndim != 3 or features.dtype != np.float32:
+        raise ValueError(f"features must be a float32 [H, W, C] array, got {features.dtype} {features.shape}")
     H, W, CF = (int(s) for s in features.shape)
+    if tuple(tgt.image.shape) != (H, W, 3):
+        raise ValueError(f"target image {tuple(tgt.image.shape)} does not match the rendered {H}x{W}")
+    if CF < 3 or not (3 <= channels["depth"] < CF and 3 <= channels["flow"] and channels["flow"] + 1 < CF):
+        raise ValueError(f"channels {channels} do not fit the {CF} rendered channels (colour in 0..2)")
     npix = H * W
     q = rt.queue
     opts = [f"-DCF={CF}", f"-DCH_DEPTH={int(channels['depth'])}", f"-DCH_FLOW={int(channels['flow'])}"]
