@@ -208,6 +208,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             }
 #endif
         }
-        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays and l_part */
+        barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays, l_part4, l_wrote */
     }
 }
