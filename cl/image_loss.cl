@@ -34,7 +34,7 @@
 #define SSIM_C2 (0.03f * 0.03f)
 #define NMAP 15          /* ssim_stack channels: 5 maps x 3 colours, map-major */
 #define NGRAD 9          /* SSIM gradient maps: d/d mu_x, d/d E[xx], d/d E[xy], x 3 colours */
-#define NSUM 5           /* partial sums: |x - y| m, S m, |d - d_gt| w, |f - f_gt|^2 w, (x - y)^2 m */
+#define NSUM 5           /* partial sums: |x - y| m, S m, |d - d_gt| w, Huber(|f - f_gt|) w, (x - y)^2 m */
 
 /* stack[p, map * 3 + c] for the five SSIM maps of the masked colours. */
 __kernel void ssim_stack(__global const float *feat,   /* [npix, CF] */
@@ -65,6 +65,7 @@ inline float sign_of(float d) {
  * g_ssim [npix, NGRAD] = dL/d(blurred mu_x, E[xx], E[xy]) per colour.
  * w_l1 = lambda_rgb (1 - lambda_dssim) / n_rgb, w_ssim = lambda_rgb lambda_dssim / n_rgb
  * (n_rgb = 3 sum(mask), at least 1), w_depth = lambda_depth / sum(depth_w), w_flow likewise;
+ * flow_delta: the flow error (px) beyond which its loss is linear (INFINITY: squared throughout);
  * has_depth / has_flow = 0 leave those channels' gradients 0.  Local size: a power of two. */
 __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
                                __global const float *gt,       /* [npix, 3] */
@@ -76,7 +77,7 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
                                __global const float *flow_w,   /* [npix] */
                                const int has_depth, const int has_flow,
                                const float w_l1, const float w_ssim, const float w_depth,
-                               const float w_flow, const int npix,
+                               const float w_flow, const float flow_delta, const int npix,
                                __global float *v_feat,         /* [npix, CF] */
                                __global float *g_ssim,         /* [npix, NGRAD] */
                                __global float *partial,        /* [groups, NSUM] */
@@ -115,13 +116,20 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
             sum[2] += fabs(d) * w;
             v[CH_DEPTH] = w_depth * sign_of(d) * w;
         }
-        if (has_flow) {
+        if (has_flow) {   /* |e|^2, continued as 2 delta |e| - delta^2 beyond |e| = delta (Huber) */
             const float w = flow_w[p];
-            for (int k = 0; k < 2; k++) {
-                const float e = f[CH_FLOW + k] - flow_gt[p * 2 + k];
-                sum[3] += e * e * w;
-                v[CH_FLOW + k] = w_flow * 2.0f * e * w;
+            const float e0 = f[CH_FLOW] - flow_gt[p * 2], e1 = f[CH_FLOW + 1] - flow_gt[p * 2 + 1];
+            const float n2 = e0 * e0 + e1 * e1;
+            float scale = 2.0f;                          /* d loss / d e = scale * e */
+            if (n2 <= flow_delta * flow_delta) {
+                sum[3] += n2 * w;
+            } else {
+                const float n = sqrt(n2);
+                sum[3] += (2.0f * flow_delta * n - flow_delta * flow_delta) * w;
+                scale = 2.0f * flow_delta / n;
             }
+            v[CH_FLOW] = w_flow * scale * e0 * w;
+            v[CH_FLOW + 1] = w_flow * scale * e1 * w;
         }
     }
     for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] = sum[k];

@@ -46,6 +46,9 @@ def test_load_config_bad_toml_and_missing_file(tmp_path):
         load_config(str(tmp_path / "nope.toml"), {})
     with pytest.raises(EndowaveError, match="override: key 'seed'"):
         load_config(None, {"seed": "x"})
+    assert load_config(None, {"flow_huber_delta": "inf"}).flow_huber_delta == float("inf")
+    with pytest.raises(EndowaveError, match="flow_huber_delta' must be > 0"):
+        load_config(None, {"flow_huber_delta": "0"})
 
 
 def test_config_dict_round_trip():

@@ -41,14 +41,17 @@ def reference(f, feats, cfg):
 
 CASES = [dict(), dict(mask=False), dict(depth=False), dict(flow=False), dict(flow_valid=False),
          dict(mask=False, depth=False, flow=False)]
+# the frames' flow errors are ~3 px: delta 2 puts many pixels on the Huber (linear) side, 1e9 none
+DELTAS = [2.0, 1e9]
 
 
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("size", [(23, 31), (64, 48)])
-def test_device_losses_match_torch(rt, case, size):
+@pytest.mark.parametrize("delta", DELTAS)
+def test_device_losses_match_torch(rt, case, size, delta):
     H, W = size
     f, feats = frame(H + 100 * CASES.index(case), H, W, **case)
-    cfg = TrainConfig(use_wavelet=False, lambda_flow=0.05)
+    cfg = TrainConfig(use_wavelet=False, lambda_flow=0.05, flow_huber_delta=delta)
     ref_total, ref_parts, ref_grad = reference(f, feats, cfg)
     tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
     total, parts, v = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt, cfg, CHANNELS)

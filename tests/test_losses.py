@@ -1,6 +1,8 @@
 """Training losses (train/losses.py): hand-computed values, an independent SSIM, gradcheck."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -72,8 +74,21 @@ def test_flow_loss_is_mean_squared_endpoint_error_over_valid():
     pred[0, 0] = torch.tensor([3.0, 4.0])  # |e|^2 = 25
     pred[1, 1] = torch.tensor([100.0, 0.0])
     valid = torch.tensor([[1.0, 1.0], [0.0, 0.0]])
-    assert float(flow_loss(pred, gt, valid)) == pytest.approx(12.5)
+    assert float(flow_loss(pred, gt, valid, delta=math.inf)) == pytest.approx(12.5)
     assert float(flow_loss(pred, gt, torch.zeros(2, 2))) == 0.0  # nothing valid: 0, no NaN
+    # Huber beyond delta: |e| = 5 > 4 costs 2 * 4 * 5 - 16 = 24; |e| = 100 on a valid pixel: 784
+    assert float(flow_loss(pred, gt, valid, delta=4.0)) == pytest.approx(24 / 2)
+    assert float(flow_loss(pred, gt, None, delta=4.0)) == pytest.approx((24 + 784) / 4)
+    assert float(flow_loss(pred, gt, None, delta=6.0)) == pytest.approx((25 + 2 * 6 * 100 - 36) / 4)
+
+
+def test_flow_loss_gradient_is_bounded_by_delta():
+    pred = torch.tensor([[[1e6, 0.0], [0.0, 0.0]]], requires_grad=True)   # [1, 2, 2]
+    gt = torch.tensor([[[0.0, 0.0], [1.0, 1.0]]])
+    flow_loss(pred, gt, None, delta=4.0).backward()
+    g = pred.grad[0]
+    assert g[0].norm() == pytest.approx(2 * 4.0 / 2)            # 2 delta / n_pixels
+    assert torch.allclose(g[1], torch.tensor([-1.0, -1.0]))     # quadratic: 2 e / 2
 
 
 def test_gradcheck_float64():
@@ -89,6 +104,7 @@ def test_gradcheck_float64():
     f = _rand((H, W, 2), 10, torch.float64).requires_grad_()
     gf = _rand((H, W, 2), 11, torch.float64)
     assert torch.autograd.gradcheck(lambda p: flow_loss(p, gf, mask), (f,), eps=1e-6, atol=1e-6)
+    assert torch.autograd.gradcheck(lambda p: flow_loss(3 * p, gf, mask, delta=0.5), (f,), eps=1e-6, atol=1e-6)
 
 
 def test_image_losses_total_and_switches():

@@ -69,6 +69,8 @@ class TrainConfig:
     lambda_flow: float = 0.01           # not in the paper: flow loss is a mean squared endpoint
                                         # error in pixels (see train/losses.py); 1 px of error
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
+    flow_huber_delta: float = 4.0       # px: beyond this endpoint error the flow loss grows linearly
+                                        # (bounded gradient; see train/losses.py); inf: pure squared
     lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
                                         # error per sub-band coefficient (MSE scale), weight 1
     use_depth: bool = True
@@ -126,6 +128,9 @@ def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_
     for name in ("iterations", "densify_every", "split_children"):
         if getattr(cfg, name) < 1:
             raise EndowaveError(f"{source}: key '{name}' must be at least 1, got {getattr(cfg, name)}")
+    if not cfg.flow_huber_delta > 0:
+        raise EndowaveError(f"{source}: key 'flow_huber_delta' must be > 0 (inf: pure squared error), "
+                            f"got {cfg.flow_huber_delta}")
 
 
 def _toml_module():
