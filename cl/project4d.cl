@@ -67,10 +67,7 @@ __kernel void project4d(
     if (has_flow) {
         float p2[3];
         p4_flow_point(&cam, means, i, &s, t_flow, p2);
-        if (p2[2] >= cam.near) {  /* else the flow is 0: the projection at t_flow is undefined */
-            out[4] = cam.fx * p2[0] / p2[2] + cam.cx - s.means2d[0];
-            out[5] = cam.fy * p2[1] / p2[2] + cam.cy - s.means2d[1];
-        }
+        p4_flow(&cam, p2, s.means2d, tiles_x, tiles_y, out + 4);   /* 0 when undefined or runaway */
     }
     for (int c = 0; c < CHANNELS; ++c) features[CHANNELS * i + c] = (c < 6) ? out[c] : 0.0f;
 }

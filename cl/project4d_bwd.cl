@@ -118,7 +118,8 @@ __kernel void project4d_bwd(
     if (has_flow) {
         float p2[3];
         p4_flow_point(&cam, means, i, &s, t_flow, p2);
-        if (p2[2] >= cam.near) {
+        float flow[2];
+        if (p4_flow(&cam, p2, s.means2d, tiles_x, tiles_y, flow)) {   /* else flow 0, no gradient */
             /* flow = proj(p2) - proj(p): -v_flow onto proj(p), J(p2)^T v_flow onto p2 */
             vu0 -= vf[4]; vu1 -= vf[5];
             float jz = 1.0f / p2[2];

@@ -216,15 +216,16 @@ inline void p4_forward(const P4Cam *cam, __global const float *means, __global c
     s->conic[0] = s->c / s->det;
     s->conic[1] = -s->b / s->det;
     s->conic[2] = s->a / s->det;
+    s->means2d[0] = cam->fx * x / z + cam->cx;
+    s->means2d[1] = cam->fy * y / z + cam->cy;
 #ifdef P4_FORWARD_NO_RECT
-    /* the adjoint takes validity from the forward's radius: means2d / radius / rect are not needed */
+    /* the adjoint takes validity from the forward's radius: radius / rect are not needed (means2d
+     * is: p4_flow tests the flow against it) */
     s->valid = valid;
     return;
 #endif
     float mid = 0.5f * (s->a + s->c);
     float lmax = mid + sqrt(fmax(mid * mid - s->det, 0.0f));
-    s->means2d[0] = cam->fx * x / z + cam->cx;
-    s->means2d[1] = cam->fy * y / z + cam->cy;
     valid = valid && (s->det > 0.0f) && isfinite(lmax) && isfinite(s->conic[0]) && isfinite(s->conic[1])
             && isfinite(s->conic[2]) && isfinite(s->means2d[0]) && isfinite(s->means2d[1]);
     s->radius = 0.0f;
@@ -250,6 +251,24 @@ inline void p4_flow_point(const P4Cam *cam, __global const float *means, int i, 
     for (int r = 0; r < 3; ++r) mu2[r] = means[4 * i + r] + s->sxt[r] * k2;
     for (int r = 0; r < 3; ++r)
         p2[r] = cam->R[3 * r] * mu2[0] + cam->R[3 * r + 1] * mu2[1] + cam->R[3 * r + 2] * mu2[2] + cam->tv[r];
+}
+
+/* The flow channel of a Gaussian: proj(p2) - means2d, p2 = its conditional mean at the flow time
+ * in camera space.  Returns 0 (flow 0, no gradient) when p2 is behind the near plane (no
+ * projection) or when the flow exceeds the image size in x or y (TILE * max(tiles_x, tiles_y)):
+ * a Gaussian that would cross the whole image between two frames has a runaway velocity
+ * Sigma_xt / Sigma_tt, and its flow, thousands of pixels, cannot be matched by any pseudo ground
+ * truth; left in, it took over the flow loss in training (README, "Flow loss"). */
+inline int p4_flow(const P4Cam *cam, const float *p2, const float *means2d, int tiles_x, int tiles_y,
+                   float *flow) {
+    flow[0] = 0.0f; flow[1] = 0.0f;
+    if (!(p2[2] >= cam->near)) return 0;
+    const float f0 = cam->fx * p2[0] / p2[2] + cam->cx - means2d[0];
+    const float f1 = cam->fy * p2[1] / p2[2] + cam->cy - means2d[1];
+    const float fmax_px = (float)(TILE * max(tiles_x, tiles_y));
+    if (!(fabs(f0) <= fmax_px && fabs(f1) <= fmax_px)) return 0;
+    flow[0] = f0; flow[1] = f1;
+    return 1;
 }
 
 /* SH direction: normalize(mu_x|t - campos) */

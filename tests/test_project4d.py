@@ -445,3 +445,22 @@ def test_teash_colour_by_hand(rt):
     Y = sh_basis(torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64), 1).numpy()
     np.testing.assert_allclose(Y[0], [SH_C0, 0, 0, -SH_C1], atol=1e-15)
     np.testing.assert_allclose(Y[1], [SH_C0, -SH_C1, 0, 0], atol=1e-15)
+
+
+def test_runaway_flow_is_dropped(rt):
+    # a nearly static-in-time, fast Gaussian: velocity Sigma_xt / Sigma_tt ~ 50 units per unit time,
+    # ~370 px of flow over 0.15, more than the 160 x 120 image: its flow is 0 with no gradient
+    # (p4_flow), while a slow one next to it keeps its flow and gradients
+    cam = Camera(150.0, 160.0, 80.0, 60.0, 160, 120)
+    fast = xt_gaussian(0.02, 1.0, 1e-3, np.array([0.1, -0.05, 3.0, 0.5]))
+    slow = xt_gaussian(0.6, 0.05, 0.4, np.array([-0.1, 0.05, 3.0, 0.5]))
+    for one in (fast, slow):
+        p = project4d(rt, upload(rt, one), cam, 0.5, 0.65)
+        r = project4d_ref(torch_params(one, torch.float64), cam, 0.5, 0.65, 6)
+        assert p.radius.get()[0] > 0
+        np.testing.assert_allclose(p.features.get()[0, 4:6], r["features"].detach().numpy()[0, 4:6],
+                                   rtol=1e-4, atol=1e-3)
+        kg, rg, radius = run_adjoint(rt, one, cam, 0.5, 0.65)
+        assert_grads_close(kg, rg, radius)
+    assert (project4d(rt, upload(rt, fast), cam, 0.5, 0.65).features.get()[0, 4:6] == 0).all()
+    assert np.abs(project4d(rt, upload(rt, slow), cam, 0.5, 0.65).features.get()[0, 4:6]).max() > 1.0

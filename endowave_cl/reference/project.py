@@ -13,7 +13,8 @@ Conventions fixed here and mirrored by cl/project4d_common.h:
   z of the conditional mean is < near, cov2d is non-finite or not positive definite, or the tile
   rectangle is empty.
 - Flow channel: projection of mu_x|t_flow minus projection of mu_x|t; it is 0 (no gradient) when
-  t_flow is None or when mu_x|t_flow is behind the near plane (its projection is undefined).
+  t_flow is None, when mu_x|t_flow is behind the near plane (its projection is undefined), or when
+  the flow exceeds the image size (TILE * tiles per side) in x or y (a runaway velocity).
 - SH view direction d = normalize(mu_x|t - campos), detached (no gradient through it).
 """
 from __future__ import annotations
@@ -169,7 +170,11 @@ def _project_all(params, camera, t, t_flow, channels):
         ok2 = p2[:, 2] >= camera.near
         z2 = torch.where(ok2, p2[:, 2], torch.ones_like(p2[:, 2]))  # safe z: no NaN gradient
         proj2 = torch.stack([fx * p2[:, 0] / z2 + cx, fy * p2[:, 1] / z2 + cy], -1)
-        flow = torch.where(ok2[:, None], proj2 - means2d, torch.zeros_like(means2d))
+        flow = proj2 - means2d
+        # a runaway flow (beyond the image size, in tiles) counts as undefined too
+        flow_max = TILE * max(-(-int(camera.width) // TILE), -(-int(camera.height) // TILE))
+        ok2 = ok2 & (flow.abs() <= flow_max).all(-1)
+        flow = torch.where(ok2[:, None], flow, torch.zeros_like(means2d))
     else:
         flow = torch.zeros_like(means2d)
     feats.append(flow)
