@@ -36,6 +36,16 @@ inline int reflect_idx(int m, int n) {
  * multiply-adds.) */
 #define CONV_RUN 8
 
+/* sum_i f[i] src[(i - R) step] for the 8 elements src[0 .. 7]: an interior run of conv_axis
+ * (step = -inner) or of v_conv_axis (step = +inner), R = flen / 2. */
+inline float8 conv_run8(__global const float *src, __global const float *f, int flen, int step) {
+    const int R = flen / 2;
+    float8 acc = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i)
+        acc += f[i] * load8(src + (i - R) * step);
+    return acc;
+}
+
 /* sum_i f[i] line[reflect(x - (i - R)) * inner] (zero_border: the taps outside [0, n) dropped):
  * one element of conv_axis; line = &in[o, 0, k]. */
 inline float conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,
@@ -73,10 +83,7 @@ __kernel void conv_axis(__global const float *in, __global float *out,
     __global float *out_o = out + (size_t)o * len;
     if (xi0 + CONV_RUN <= len && xi0 / inner - R >= 0 && (xi0 + CONV_RUN - 1) / inner + R < n) {
         /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
-        float8 acc = (float8)(0.0f);
-        for (int i = 0; i < flen; ++i)
-            acc += f[i] * load8(in_o + xi0 + (R - i) * inner);
-        store8(out_o + xi0, acc);
+        store8(out_o + xi0, conv_run8(in_o + xi0, f, flen, -inner));
     } else {
         const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
         for (int xi = xi0; xi < end; ++xi) {
@@ -138,9 +145,7 @@ __kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
     __global float *vi = v_in + (size_t)o * len;
     if (yi0 + CONV_RUN <= len && yi0 / inner > R && (yi0 + CONV_RUN - 1) / inner < n - 1 - R) {
         /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
-        float8 acc = (float8)(0.0f);
-        for (int i = 0; i < flen; ++i)
-            acc += f[i] * load8(vo + yi0 + (i - R) * inner);
+        float8 acc = conv_run8(vo + yi0, f, flen, inner);
         if (accumulate) acc += load8(vi + yi0);
         store8(vi + yi0, acc);
     } else {

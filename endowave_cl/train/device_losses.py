@@ -22,7 +22,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from ..runtime import round_up
-from .losses import FLOW_HUBER_DELTA, SSIM_SIGMA, SSIM_WINDOW
+from .losses import FLOW_HUBER_DELTA, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -73,9 +73,9 @@ def _window(rt) -> object:
     w = _WINDOWS.get(rt)
     if w is None:
         import pyopencl.array as cla
-        x = np.arange(SSIM_WINDOW, dtype=np.float64) - (SSIM_WINDOW - 1) / 2.0
-        g = np.exp(-x * x / (2 * SSIM_SIGMA * SSIM_SIGMA))
-        w = cla.to_device(rt.queue, (g / g.sum()).astype(np.float32))  # symmetric: its own reverse
+        import torch
+        g = _gaussian_window_1d(SSIM_WINDOW, SSIM_SIGMA, torch.float64, "cpu").numpy()
+        w = cla.to_device(rt.queue, g.astype(np.float32))  # symmetric: its own reverse
         _WINDOWS[rt] = w
     return w
 
