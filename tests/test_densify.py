@@ -10,6 +10,7 @@ from endowave_cl.gaussians import Gaussians
 from endowave_cl.train.config import TrainConfig
 from endowave_cl.train.densify import (covariance_4d, densify_and_prune, logit, moment_source_index,
                                        reset_opacity, sigmoid)
+from endowave_cl.train.motion import motion_of
 
 CFG = TrainConfig()
 EXTENT = 1.0
@@ -22,6 +23,7 @@ def _scene(n, scale=SMALL, seed=0):
     g.scales[:] = scale
     g.scales[:, 3] = math.log(0.2)
     g.opacity[:] = logit(0.5)
+    g.quat_l[:] = g.quat_r[:] = [1, 0, 0, 0]   # still: the spatial scales are the spatial size
     return g
 
 
@@ -44,11 +46,15 @@ def test_clone_split_prune_hand_built():
     for i, s in enumerate(src[:4]):
         for name, a in out.as_dict().items():
             np.testing.assert_array_equal(a[i], getattr(g, name)[s], err_msg=name)
-    # children: spatial scales / 1.6, time scale and everything else copied, new 4D centres
+    # children: conditional spatial covariance / 1.6^2, velocity and temporal std kept, appearance
+    # copied, new 4D centres
+    cond_p, st_p, v_p = motion_of(covariance_4d(g)[2:3])
+    cond_c, st_c, v_c = motion_of(covariance_4d(out)[4:6])
+    for i in range(2):
+        np.testing.assert_allclose(cond_c[i], cond_p[0] / 1.6 ** 2, rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(st_c[i], st_p[0], rtol=1e-4)
+        np.testing.assert_allclose(v_c[i], v_p[0], rtol=1e-4, atol=1e-6)
     for i in (4, 5):
-        np.testing.assert_allclose(np.exp(out.scales[i, :3]), 0.05 / 1.6, rtol=1e-6)
-        assert out.scales[i, 3] == g.scales[2, 3]
-        np.testing.assert_array_equal(out.quat_l[i], g.quat_l[2])
         np.testing.assert_array_equal(out.sh[i], g.sh[2])
         assert np.all(out.means[i] != g.means[2])
     assert not np.array_equal(out.means[4], out.means[5])

@@ -30,6 +30,8 @@ class TrainConfig:
     init_time_scale: float = 0.2    # initial temporal std (normalised time; 0: 2 training-frame
                                     # spacings). 0.2 keeps a Gaussian visible over ~half the sequence:
                                     # +0.5 dB over 2 spacings after 300 demo steps (24.7 vs 24.2 dB)
+    init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
+                                    # their pixel (train/motion.py) instead of starting still
     max_gaussians: int = 300000     # densification stops adding Gaussians beyond this count
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
     sh_degree: int = 3

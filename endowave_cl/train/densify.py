@@ -6,20 +6,24 @@ steps; the trainer uploads the result and rebuilds the Adam moments with ``sourc
 Rules (3DGS defaults from TrainConfig):
 - A Gaussian is a candidate when its mean screen-space gradient grad_accum / count (NDC units,
   accumulated by rasterize_bwd) is >= densify_grad_threshold.
-- Candidates whose largest spatial scale is <= percent_dense x extent are CLONED (an identical
+- A Gaussian's spatial size is the largest std of its conditional 3D Gaussian (the same at every
+  time; train/motion.py ``spatial_size``), not of its 4D principal axes: a moving Gaussian's
+  longest axis runs along its path through space-time.
+- Candidates whose spatial size is <= percent_dense x extent are CLONED (an identical
   copy is appended; the original stays).
 - Larger candidates are SPLIT into split_children children whose 4D centres are sampled from the
   parent's own 4D Gaussian N(mu, R S S^T R^T) (so children get new times, not only new
-  positions); the children's spatial scales are the parent's / 1.6, every other parameter is
-  copied.  The TIME scale is kept: the split is triggered by a screen-space (spatial) gradient,
-  which says nothing about temporal resolution, and shrinking the lifetime would make children
-  vanish between training frames.  The parent is removed.
+  positions); the children's conditional spatial covariance is the parent's / 1.6^2, their
+  velocity and temporal std are the parent's (train/motion.py), every other parameter is copied.
+  The lifetime is kept: the split is triggered by a screen-space (spatial) gradient, which says
+  nothing about temporal resolution, and shrinking the lifetime would make children vanish
+  between training frames.  The parent is removed.
 - When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
   it, those with the largest gradient are taken first.
 - Then PRUNE: sigmoid(opacity) < prune_opacity; and, when ``prune_big`` (off by default; 3DGS
   turns it on once step > opacity_reset_every, pass prune_big=step > cfg.opacity_reset_every),
   Gaussians whose max screen radius (pixels) exceeded prune_screen_size
-  or whose largest spatial scale exceeds prune_world_size x extent.  Screen radii are only known
+  or whose spatial size exceeds prune_world_size x extent.  Screen radii are only known
   for rows that existed before this call: new rows (clones, children) are not screen-pruned.
   (3DGS resets its radii before this test, which disables it; we apply it as intended.)
 
@@ -36,6 +40,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from ..gaussians import PARAM_NAMES, Gaussians
+from .motion import gaussian_from_covariance, motion_of, moving_covariance, spatial_size
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
@@ -78,7 +83,7 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     count = np.asarray(count, np.float64).reshape(N)
     max_radius = np.asarray(max_radius, np.float64).reshape(N)
     mean_grad = np.where(count > 0, grad_accum / np.maximum(count, 1.0), 0.0)  # [N]
-    max_scale = np.exp(g.scales[:, :3].astype(np.float64)).max(1) if N else np.zeros(0)  # [N]
+    max_scale = spatial_size(covariance_4d(g)) if N else np.zeros(0)  # [N]
 
     candidate = mean_grad >= cfg.densify_grad_threshold
     budget = max(0, int(cfg.max_gaussians) - N)
@@ -106,9 +111,9 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
         std = np.exp(sub.scales.astype(np.float64))                           # [S*c, 4]
         z = rng.standard_normal((parents.size, 4)) * std                      # N(0, S S^T)
         child["means"] = (sub.means.astype(np.float64) + np.einsum("nij,nj->ni", R, z)).astype(np.float32)
-        scales = child["scales"].copy()
-        scales[:, :3] -= np.float32(math.log(cfg.split_scale_divisor))
-        child["scales"] = scales
+        cond, sigma_t, vel = motion_of(covariance_4d(sub))
+        child["scales"], child["quat_l"], child["quat_r"] = (a.astype(np.float32) for a in gaussian_from_covariance(
+            moving_covariance(cond / cfg.split_scale_divisor ** 2, sigma_t, vel)))
 
     keep_rows = np.flatnonzero(~split)
     parts = [_take(g, keep_rows), _take(g, clone_rows), child]
@@ -120,7 +125,7 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     # -- prune ------------------------------------------------------------------------------------
     prune = sigmoid(new["opacity"]) < cfg.prune_opacity
     if prune_big:
-        new_max_scale = np.exp(new["scales"][:, :3].astype(np.float64)).max(1) if source.size else np.zeros(0)
+        new_max_scale = spatial_size(covariance_4d(Gaussians(**new))) if source.size else np.zeros(0)
         prune |= radius_known > cfg.prune_screen_size
         prune |= new_max_scale > cfg.prune_world_size * extent
     alive = ~prune

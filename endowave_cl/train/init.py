@@ -24,7 +24,7 @@ Per Gaussian:
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -70,8 +70,12 @@ def _valid_pixels(frame, default_depth: float) -> tuple:
 
 
 def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float, max_points: int,
-                   seed: int = 0, sh_degree: int = 3, nt: int = 2, time_scale: float = 0.0) -> Gaussians:
-    """Initial Gaussians (module docstring); frames[k] has image, depth, mask, camera, time."""
+                   seed: int = 0, sh_degree: int = 3, nt: int = 2, time_scale: float = 0.0,
+                   flows: Optional[Mapping[int, object]] = None) -> Gaussians:
+    """Initial Gaussians (module docstring); frames[k] has image, depth, mask, camera, time.
+
+    flows: the pseudo ground-truth flow of the training pairs (``data.flow.flow_for_scene``); when
+    given, every Gaussian starts moving with the tissue under its pixel (train/motion.py)."""
     idx = [int(k) for k in train_indices]
     if not idx:
         raise EndowaveError("init: no training frames")
@@ -95,7 +99,12 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     stride = max(1.0, math.sqrt(total / len(idx) / max(1.0, n_keep * visible)))  # >= one pixel
     starts = np.concatenate([[0], np.cumsum(counts)])
 
-    xyz, rgb, tt, size = [], [], [], []
+    vel_maps = {}
+    if flows:
+        from .motion import frame_velocities
+        vel_maps = frame_velocities(frames, idx, flows, d_prior if d_prior > 0 else
+                                    prior_depth(frames, idx, near, far))
+    xyz, rgb, tt, size, vel = [], [], [], [], []
     for f_i, k in enumerate(idx):
         lo, hi = np.searchsorted(chosen, [starts[f_i], starts[f_i + 1]])
         if hi == lo:
@@ -114,7 +123,9 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         rgb.append(np.asarray(fr.image, np.float64).reshape(-1, 3)[flat])
         tt.append(np.full(depth.shape, float(fr.time)))
         size.append(depth * 0.5 * (1.0 / cam.fx + 1.0 / cam.fy) * stride)
-    xyz, rgb, tt, size = (np.concatenate(a) for a in (xyz, rgb, tt, size))
+        vm = vel_maps.get(k)
+        vel.append(np.zeros((flat.size, 3)) if vm is None else vm.reshape(-1, 3)[flat].astype(np.float64))
+    xyz, rgb, tt, size, vel = (np.concatenate(a) for a in (xyz, rgb, tt, size, vel))
     N = xyz.shape[0]
     K = num_sh_bases(sh_degree)
     sh = np.zeros((N, nt + 1, K, 3), np.float32)
@@ -122,8 +133,14 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     scales = np.empty((N, 4), np.float64)
     scales[:, :3] = np.log(np.maximum(size, 1e-12))[:, None]
     scales[:, 3] = math.log(sigma_t)
-    quat = np.zeros((N, 4))
-    quat[:, 0] = 1.0
-    return Gaussians(means=np.concatenate([xyz, tt[:, None]], 1), scales=scales, quat_l=quat, quat_r=quat.copy(),
+    quat_l = np.zeros((N, 4))
+    quat_l[:, 0] = 1.0
+    quat_r = quat_l.copy()
+    moving = np.flatnonzero(np.abs(vel).max(1) > 0)
+    if moving.size:
+        from .motion import gaussian_from_covariance, moving_covariance
+        cov = moving_covariance(np.maximum(size[moving], 1e-12), sigma_t, vel[moving])
+        scales[moving], quat_l[moving], quat_r[moving] = gaussian_from_covariance(cov)
+    return Gaussians(means=np.concatenate([xyz, tt[:, None]], 1), scales=scales, quat_l=quat_l, quat_r=quat_r,
                      opacity=np.full(N, math.log(INIT_OPACITY / (1 - INIT_OPACITY))),
                      sh=sh, phase=np.zeros((N, nt + 1)))

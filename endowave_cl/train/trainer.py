@@ -64,6 +64,7 @@ class Trainer:
         self.step = 0
         self.history: List[Dict[str, float]] = []
 
+        self.flows = self._load_flows()
         ckpt_path = latest_checkpoint(self.run_dir) if resume else None
         if ckpt_path is not None:
             ck = load_checkpoint(ckpt_path)
@@ -74,7 +75,8 @@ class Trainer:
         else:
             from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
-                               max_points=cfg.init_points, seed=cfg.seed, time_scale=cfg.init_time_scale)
+                               max_points=cfg.init_points, seed=cfg.seed, time_scale=cfg.init_time_scale,
+                               flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
             ck = None
         self.params = upload(rt, g)
@@ -104,13 +106,19 @@ class Trainer:
         self.stats = {"grad_accum": cla.zeros(q, (n,), np.float32), "count": cla.zeros(q, (n,), np.int32),
                       "max_radius": cla.zeros(q, (n,), np.float32)}
 
+    def _load_flows(self) -> Dict[int, object]:
+        """Pseudo ground-truth flow of the training pairs, {k: FlowPair} (cached on disk), when the
+        flow loss or the moving initialisation needs it."""
+        c = self.cfg
+        if not (c.use_flow or c.init_velocity):
+            return {}
+        from ..data.flow import flow_for_scene
+        return dict(flow_for_scene(self.scene, method=c.flow_method, progress=False))
+
     def _prepare_targets(self) -> Dict[int, FrameTargets]:
         from .device_losses import prepare_targets
         sc, c = self.scene, self.cfg
-        flows = {}
-        if c.use_flow:
-            from ..data.flow import flow_for_scene
-            flows = dict(flow_for_scene(sc, method=getattr(c, "flow_method", "dis"), progress=False))
+        flows = self.flows if c.use_flow else {}
         out = {}
         for k in sc.train_indices:
             f = sc.frames[k]
