@@ -69,7 +69,7 @@ def test_frame_velocities_of_a_translating_plane():
     valid = np.ones((H, W), np.float32)
     valid[5:9, 5:9] = 0                                    # filled in from the neighbours
     pairs = {0: _Pair(0, 1, flow, valid), 1: _Pair(1, 2, flow, valid)}
-    vel = frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z)
+    vel = {k: v for k, (v, _) in frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z).items()}
     want = np.array([1.5 * z / f / 0.25, -0.5 * z / f / 0.25, 0.0])
     for k in (0, 1, 2):
         np.testing.assert_allclose(vel[k].reshape(-1, 3), np.broadcast_to(want, (H * W, 3)), rtol=1e-5, atol=1e-7)

@@ -23,6 +23,9 @@ def add_arguments(p) -> None:
     p.add_argument("--demo", action="store_true", help="train on the built-in synthetic scene (generated into RUN/demo_scene)")
     p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
     p.add_argument("--iterations", type=int, help="number of training steps")
+    p.add_argument("--minutes", type=float,
+                   help="time budget: plan the steps, densification and learning-rate decay to end "
+                        "training within this many minutes on this device (prints the plan)")
     p.add_argument("--downscale", type=float, help="image downscale factor (2 = half size)")
     p.add_argument("--no-flow", action="store_true", help="turn the optical-flow loss off")
     p.add_argument("--no-wavelet", action="store_true", help="turn the rational-wavelet loss off")
@@ -54,6 +57,10 @@ def build_config(args):
             cfg.max_gaussians = DEMO_MAX_GAUSSIANS
     if args.downscale is not None:
         cfg.downscale = args.downscale
+    if getattr(args, "minutes", None) is not None:
+        if not args.minutes > 0:
+            raise EndowaveError(f"--minutes must be > 0, got {args.minutes}")
+        cfg.minutes = args.minutes
     cfg.use_flow &= not args.no_flow
     cfg.use_wavelet &= not args.no_wavelet
     cfg.use_depth &= not args.no_depth
@@ -86,8 +93,9 @@ def run(args) -> int:
     losses = ["rgb"] + [n for n, on in (("depth", cfg.use_depth), ("flow", cfg.use_flow),
                                          ("wavelet", cfg.use_wavelet)) if on]
     trainer = Trainer(scene, cfg, out, rt, resume=not args.restart)
-    print(f"training {cfg.iterations} steps, losses: {', '.join(losses)}; {len(trainer.params['means'])} Gaussians")
+    plan = f"a {cfg.minutes:g}-minute budget" if cfg.minutes > 0 else f"{cfg.iterations} steps"
+    print(f"training {plan}, losses: {', '.join(losses)}; {len(trainer.params['means'])} Gaussians")
     m = trainer.train(progress=not args.quiet)
     print(f"final test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
-          f"{m['gaussians']} Gaussians, {m['train_seconds']:.0f} s; run saved in {out}")
+          f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s; run saved in {out}")
     return 0

@@ -18,6 +18,8 @@ class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
     iterations: int = 3000          # demo default: a few minutes per 1000 steps on a GPU, usable
                                     # on a CPU; 4DGS trains 30000 (pass iterations = 30000)
+    minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
+                                    # training on this device (train/budget.py); 0: `iterations`
     seed: int = 0
     deterministic: bool = False     # force bit-identical gradients on GPUs too (CPU devices always
                                     # use that mode: it is the faster one there)
@@ -130,6 +132,9 @@ def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_
     for name in ("iterations", "densify_every", "split_children"):
         if getattr(cfg, name) < 1:
             raise EndowaveError(f"{source}: key '{name}' must be at least 1, got {getattr(cfg, name)}")
+    if not cfg.minutes >= 0 or cfg.minutes == float("inf"):
+        raise EndowaveError(f"{source}: key 'minutes' must be a finite number >= 0 (0: no time budget), "
+                            f"got {cfg.minutes}")
     if not cfg.flow_huber_delta > 0:
         raise EndowaveError(f"{source}: key 'flow_huber_delta' must be > 0 (inf: pure squared error), "
                             f"got {cfg.flow_huber_delta}")

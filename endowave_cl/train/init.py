@@ -34,6 +34,7 @@ from ..gaussians import Gaussians, num_sh_bases
 SH_C0 = 0.28209479177387814   # Y_00: DC coefficient c gives colour 0.5 + SH_C0 * c
 INIT_OPACITY = 0.1
 TIME_SCALE_FRAMES = 2.0       # time std in units of the training frame spacing
+UNTRUSTED_TIME_SCALE_FRAMES = 1.0   # time std where the flow is not trusted (init_gaussians)
 VISIBLE_WITHIN = 1.18         # |t - mu_t| < 1.18 sigma_t: marginal weight above one half
 NEAR_FLOOR = 1e-3             # a near bound of 0 carries no scale: use far / 1000 instead
 MASK_THRESHOLD = 0.5          # mask values are 0 / 1; anything above 0.5 is supervised tissue
@@ -104,7 +105,7 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         from .motion import frame_velocities
         vel_maps = frame_velocities(frames, idx, flows, d_prior if d_prior > 0 else
                                     prior_depth(frames, idx, near, far))
-    xyz, rgb, tt, size, vel = [], [], [], [], []
+    xyz, rgb, tt, size, vel, trusted = [], [], [], [], [], []
     for f_i, k in enumerate(idx):
         lo, hi = np.searchsorted(chosen, [starts[f_i], starts[f_i + 1]])
         if hi == lo:
@@ -124,22 +125,27 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         tt.append(np.full(depth.shape, float(fr.time)))
         size.append(depth * 0.5 * (1.0 / cam.fx + 1.0 / cam.fy) * stride)
         vm = vel_maps.get(k)
-        vel.append(np.zeros((flat.size, 3)) if vm is None else vm.reshape(-1, 3)[flat].astype(np.float64))
-    xyz, rgb, tt, size, vel = (np.concatenate(a) for a in (xyz, rgb, tt, size, vel))
+        vel.append(np.zeros((flat.size, 3)) if vm is None else vm[0].reshape(-1, 3)[flat].astype(np.float64))
+        trusted.append(np.ones(flat.size, bool) if vm is None else vm[1].reshape(-1)[flat])
+    xyz, rgb, tt, size, vel, trusted = (np.concatenate(a) for a in (xyz, rgb, tt, size, vel, trusted))
     N = xyz.shape[0]
     K = num_sh_bases(sh_degree)
     sh = np.zeros((N, nt + 1, K, 3), np.float32)
     sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0
     scales = np.empty((N, 4), np.float64)
     scales[:, :3] = np.log(np.maximum(size, 1e-12))[:, None]
-    scales[:, 3] = math.log(sigma_t)
+    # Where the flow failed its consistency check (fast tools, occlusions, highlights) the motion
+    # is unknown: such a Gaussian lives for a few frames only, so that it cannot smear what it
+    # shows across the sequence; training lengthens it where it is right.
+    sigma_pt = np.where(trusted, sigma_t, min(sigma_t, UNTRUSTED_TIME_SCALE_FRAMES * _frame_spacing(times)))
+    scales[:, 3] = np.log(sigma_pt)
     quat_l = np.zeros((N, 4))
     quat_l[:, 0] = 1.0
     quat_r = quat_l.copy()
     moving = np.flatnonzero(np.abs(vel).max(1) > 0)
     if moving.size:
         from .motion import gaussian_from_covariance, moving_covariance
-        cov = moving_covariance(np.maximum(size[moving], 1e-12), sigma_t, vel[moving])
+        cov = moving_covariance(np.maximum(size[moving], 1e-12), sigma_pt[moving], vel[moving])
         scales[moving], quat_l[moving], quat_r[moving] = gaussian_from_covariance(cov)
     return Gaussians(means=np.concatenate([xyz, tt[:, None]], 1), scales=scales, quat_l=quat_l, quat_r=quat_r,
                      opacity=np.full(N, math.log(INIT_OPACITY / (1 - INIT_OPACITY))),

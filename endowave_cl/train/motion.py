@@ -161,11 +161,12 @@ def _displacement(frames, k: int, k2: int, flow: np.ndarray, valid: np.ndarray, 
 
 
 def frame_velocities(frames, train_indices, flows: Dict[int, object], depth_prior: float
-                     ) -> Dict[int, np.ndarray]:
-    """{k: [H, W, 3]} world velocity (scene units per unit time) of every training frame's pixels:
-    the mean of the forward estimate (flow k -> next training frame) and the backward one (the
-    previous pair's backward flow k -> previous frame) where each is trusted, filled in smoothly
-    where neither is (``_fill``).  Frames with no flow pair get no entry."""
+                     ) -> Dict[int, Tuple[np.ndarray, np.ndarray]]:
+    """{k: (velocity [H, W, 3], trusted [H, W] bool)}: world velocity (scene units per unit time)
+    of every training frame's pixels, the mean of the forward estimate (flow k -> next training
+    frame) and the backward one (the previous pair's backward flow k -> previous frame) where each
+    is trusted, filled in smoothly where neither is (``_fill``); ``trusted`` marks the pixels where
+    at least one estimate passed its consistency check.  Frames with no flow pair get no entry."""
     by_dst = {p.dst: p for p in flows.values()}
     out = {}
     for k in train_indices:
@@ -186,5 +187,5 @@ def frame_velocities(frames, train_indices, flows: Dict[int, object], depth_prio
             wsum += ok
         if not wsum.any():
             continue
-        out[k] = _fill(acc / np.maximum(wsum, 1)[..., None], (wsum > 0).astype(np.float32))
+        out[k] = (_fill(acc / np.maximum(wsum, 1)[..., None], (wsum > 0).astype(np.float32)), wsum > 0)
     return out

@@ -55,6 +55,7 @@ class Trainer:
         from .checkpoint import latest_checkpoint, load_checkpoint
 
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
+        self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         # the run folder describes itself: render / eval / export read this
@@ -204,6 +205,35 @@ class Trainer:
             old.unlink()
         return path
 
+    # ------------------------------------------------------------------ time budget
+    def _start_budget(self):
+        """A BudgetPlan when cfg.minutes is set (train/budget.py), else None."""
+        from .budget import BudgetPlan
+        c = self.cfg
+        if not c.minutes > 0:
+            return None
+        # the final checkpoint and evaluation render every test frame once: a few steps' worth
+        reserve = min(0.1 * c.minutes * 60.0, 5.0 + 0.05 * len(self.scene.test_indices))
+        return BudgetPlan.start(c, c.minutes, reserve, t_start=self.t_created)
+
+    def _replan(self, budget, step_times: List[float], bar) -> bool:
+        """Re-plan the schedule from the measured step rate (first after MIN_TIMED_STEPS steps,
+        then every log interval); True when the plan changed."""
+        from .budget import MIN_TIMED_STEPS, RATE_WINDOW, WARMUP_STEPS
+        timed = step_times[WARMUP_STEPS:]
+        first = budget.planned is None
+        if len(timed) < MIN_TIMED_STEPS or not (first or self.step % self.cfg.log_every == 0):
+            return False
+        rate = float(np.median(timed[-RATE_WINDOW:]))
+        old = budget.planned
+        total = budget.replan(self.cfg, self.step, rate)
+        if first:
+            c = self.cfg
+            bar.write(f"time budget {c.minutes:g} min: planned {total} steps at {rate * 1e3:.0f} ms/step "
+                      f"(densify {c.densify_from}-{c.densify_until}, position lr decay over "
+                      f"{c.lr_position_steps} steps); re-planned as the step rate changes")
+        return total != old
+
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
         from tqdm import tqdm
@@ -212,16 +242,25 @@ class Trainer:
         bar = tqdm(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
                    desc="train", unit="it")
         t_start = time.perf_counter()
+        budget = self._start_budget()
+        step_times: List[float] = []
         ema = None
         while self.step < c.iterations:
+            if budget is not None and budget.out_of_time():
+                bar.write(f"time budget of {c.minutes:g} min reached at step {self.step}")
+                break
+            t_step = time.perf_counter()
             k = order[int(self.rng.integers(len(order)))]
             parts = self.train_step(k)
+            step_times.append(time.perf_counter() - t_step)
             ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
             s = self.step
             if c.densify_from <= s <= c.densify_until and s % c.densify_every == 0:
                 self.densify()
             if s > 0 and s % c.opacity_reset_every == 0 and s <= c.densify_until:
                 self.reset_opacity()
+            if budget is not None and self._replan(budget, step_times, bar):
+                bar.total = c.iterations
             if s % c.log_every == 0 or s == c.iterations:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
                 self.history.append({"step": s, **{k2: float(v) for k2, v in ema.items()},
