@@ -115,3 +115,42 @@ def test_baseline_scores_match_an_independent_computation_and_are_cached(monkeyp
     calls = []
     monkeypatch.setattr(B, "baseline_images", lambda *args: calls.append(args))
     assert B.baseline_scores(sc) is rows and not calls
+
+
+def _tool(*args):
+    import subprocess
+    import sys
+    from pathlib import Path
+    tool = Path(__file__).resolve().parents[1] / "tools" / "eval_baselines.py"
+    return subprocess.run([sys.executable, str(tool), *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def test_eval_baselines_tool(tmp_path):
+    import json
+    from endowave_cl.data.synth import make_synthetic_scene
+    scene = make_synthetic_scene(tmp_path / "s", width=48, height=40, frames=12, seed=2, deformation=2.0)
+    r = _tool(scene, "--no-lpips", "--per-frame", "--json", tmp_path / "b.json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads((tmp_path / "b.json").read_text())
+    assert set(out["baselines"]) == {"mean", "dis"} and out["flow"]["frames"] == 2
+    for line in ("host: ", "neighbour mean", "DIS flow interpolation", "gt_flow: DIS"):
+        assert line in r.stdout, r.stdout
+    assert f"{out['baselines']['dis']['psnr']:7.2f}" in r.stdout
+    r = _tool(tmp_path / "nowhere")
+    assert r.returncode == 1 and "nowhere" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_real_frames_flow_interpolation_beats_the_mean(pulling_scene):
+    """On the shared real frames (skipped when absent), at 160x128: the neighbour mean is the plain
+    average of frames i - 1 and i + 1, and DIS interpolation is well above it."""
+    from endowave_cl.data.scene import load_scene
+    sc = load_scene(pulling_scene, downscale=4)
+    rows = B.baseline_scores(sc)
+    for r in rows:
+        k = r["index"]
+        assert r["neighbours"] == [k - 1, k + 1] and r["fraction"] == pytest.approx(0.5)
+        avg = (sc.frames[k - 1].image.astype(np.float64) + sc.frames[k + 1].image) / 2
+        assert r["mean"]["psnr"] == pytest.approx(_psnr(avg, sc.frames[k].image), abs=1e-4)
+    mean, dis = B.summarise(rows, "mean")["psnr"], B.summarise(rows, "dis")["psnr"]
+    print(f"160x128: neighbour mean {mean:.2f} dB, DIS interpolation {dis:.2f} dB")
+    assert dis > mean + 2.0
