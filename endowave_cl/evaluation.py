@@ -1,38 +1,223 @@
-"""Evaluation of a model on a scene's test frames, the way papers report it (DESIGN.md)."""
+"""Evaluation of a model on a scene's test frames, the way papers report it (DESIGN.md), beside the
+baselines a user would reach for without a 4D model (baselines.py), and the figures that show where
+it stands: PSNR per frame over time and the worst test frame."""
 from __future__ import annotations
 
+import io
 import statistics
 import time
+from pathlib import Path
+from typing import Dict
 
 import numpy as np
 
+# The error panel of the worst-frame image maps mean |render - ground truth| over RGB linearly onto
+# the colour map, saturating at this value (fixed, so that images of different runs compare).
+ERROR_FULL_SCALE = 0.25
 
-def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True) -> dict:
+# (scene path, width, height, test frames) -> {k: (gt flow [H, W, 2], valid [H, W] bool, dis epe)}
+_FLOW_CACHE: Dict[tuple, dict] = {}
+
+
+def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
+                 with_baselines: bool = False) -> dict:
     """Test-frame metrics of device parameters: PSNR (masked form and whole-image form on masked
     images), SSIM, LPIPS-Alex (None when unavailable or not asked for) and render FPS (median of
-    fps_runs renders after warm-up; None when fps_runs is 0)."""
-    from .lpips import lpips as lpips_distance
+    fps_runs renders after warm-up; None when fps_runs is 0), plus "per_frame" (each test frame's
+    index, name, time and figures).
+
+    When the scene has gt_flow/ (synthetic scenes), "flow" holds the end-point error of the flow
+    the model renders from each test frame to the next frame against the ground truth, beside
+    DIS's error on the same pixels (see ``flow_references``); else "flow" is None.
+
+    with_baselines: also score the neighbour mean and the DIS flow interpolation on the same
+    frames with the same function (baselines.py; computed once per scene and process) and add
+    "baselines" {name: means}, "margin" (model minus the better baseline by whole-image PSNR:
+    psnr, psnr_masked and ssim as model - baseline, lpips as baseline - model, so positive = the
+    model is better everywhere) and each baseline's figures in "per_frame".  Off by default: the
+    trainer's periodic evaluation calls this without it."""
     from .lpips import lpips_available
-    from .metrics import psnr, psnr_masked, ssim
+    from .metrics import frame_scores
     from .render import render
-    use_lpips = with_lpips and lpips_available()
-    ps, pm, ss, lp = [], [], [], []
+    use_lpips = bool(with_lpips and lpips_available())
+    flow_refs = flow_references(scene)
+    rows = []
     for k in scene.test_indices:
         f = scene.frames[k]
-        pred = np.clip(render(rt, params, f.camera, f.time).host()["image"], 0, 1)
-        mask = np.ones(pred.shape[:2], np.float32) if f.mask is None else f.mask
-        pm.append(psnr_masked(pred, f.image, mask))
-        pmask, gmask = pred * mask[..., None], f.image * mask[..., None]
-        ps.append(psnr(pmask, gmask))
-        ss.append(ssim(pmask, gmask))
-        if use_lpips:
-            lp.append(lpips_distance(pmask, gmask))
+        t_flow = scene.frames[k + 1].time if k in flow_refs else None
+        out = render(rt, params, f.camera, f.time, t_flow).host()
+        row = {"index": k, "name": f.name, "time": f.time,
+               "model": frame_scores(out["image"], f.image, f.mask, use_lpips)}
+        if k in flow_refs:
+            row["flow"] = _flow_row(out["flow"], flow_refs[k])
+        rows.append(row)
+    m = _means(rows, "model")
     fps = None
     if fps_runs > 0:
         fps = _render_fps(rt, params, scene.frames[scene.test_indices[0]], fps_runs)
-    return {"psnr": float(np.mean(ps)), "psnr_masked": float(np.mean(pm)), "ssim": float(np.mean(ss)),
-            "lpips": float(np.mean(lp)) if use_lpips else None, "fps": fps,
-            "test_frames": len(scene.test_indices), "device": rt.name}
+    m.update({"fps": fps, "test_frames": len(scene.test_indices), "device": rt.name})
+    m["flow"] = _flow_summary(rows) if flow_refs else None
+    if with_baselines:
+        from .baselines import NAMES, baseline_scores, summarise
+        base = baseline_scores(scene, use_lpips)
+        for row, b in zip(rows, base):
+            row.update({"neighbours": b["neighbours"], "fraction": b["fraction"]})
+            row.update({name: b[name] for name in NAMES})
+        m["baselines"] = {name: summarise(base, name) for name in NAMES}
+        m["margin"] = margin(m, m["baselines"])
+    m["per_frame"] = rows
+    return m
+
+
+def margin(model: dict, baselines: dict) -> dict:
+    """The model's margin over the better baseline (by whole-image PSNR); positive = model better."""
+    best = max(baselines, key=lambda name: baselines[name]["psnr"])
+    b = baselines[best]
+    out = {"over": best}
+    for key in ("psnr", "psnr_masked", "ssim"):
+        out[key] = float(model[key] - b[key])
+    out["lpips"] = None if model["lpips"] is None or b["lpips"] is None else float(b["lpips"] - model["lpips"])
+    return out
+
+
+def _means(rows, name) -> dict:
+    out = {}
+    for key in ("psnr", "psnr_masked", "ssim", "lpips"):
+        vals = [r[name][key] for r in rows]
+        out[key] = None if any(v is None for v in vals) else float(np.mean(vals))
+    return out
+
+
+# ------------------------------------------------------------------------------ flow vs gt_flow
+def flow_references(scene) -> dict:
+    """{k: (gt flow, valid, dis epe)} for each test frame k that has scene/gt_flow/<name>.npy (the
+    forward flow from frame k to k + 1 written by ``endowave-cl synth``); {} for scenes without it.
+
+    gt flow is resized to the scene size (vectors scaled) for downscaled scenes.  valid: the pixels
+    both errors are averaged over: the target p + flow inside the image and, with masks, tissue at p
+    in frame k and tissue at p and at the target in frame k + 1 (``data.flow.valid_mask``, tool
+    grown by a pixel): the model is scored on tissue only, like its images.  dis epe: the mean
+    end-point error there of OpenCV DIS run on frames k and k + 1 themselves (the estimator and
+    preset of the pseudo ground truth), a reference of what a flow estimator that sees both frames
+    gets.  Cached in memory per scene path, size and split."""
+    from .data.flow import _fit_to_scene, estimate_flow, valid_mask
+    from .errors import DataError
+    gt_dir = Path(scene.path) / "gt_flow"
+    if not gt_dir.is_dir():
+        return {}
+    key = (str(Path(scene.path).resolve()), scene.width, scene.height, tuple(scene.test_indices))
+    if key in _FLOW_CACHE:
+        return _FLOW_CACHE[key]
+    refs = {}
+    for k in scene.test_indices:
+        if k + 1 >= len(scene.frames):
+            continue
+        path = gt_dir / f"{scene.frames[k].name}.npy"
+        if not path.is_file():
+            continue
+        try:
+            gt = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise DataError(f"{path}: unreadable ground-truth flow ({e})") from None
+        if gt.ndim != 3 or gt.shape[2] != 2:
+            raise DataError(f"{path}: ground-truth flow must be [H, W, 2], got {list(gt.shape)}")
+        gt = _fit_to_scene(gt.astype(np.float32), path, scene)
+        f0, f1 = scene.frames[k], scene.frames[k + 1]
+        valid = valid_mask(gt, None, f0.mask, f1.mask) > 0.5
+        if not valid.any():
+            continue
+        dis = estimate_flow(f0.image, f1.image)
+        refs[k] = (gt, valid, _epe(dis, gt, valid))
+    _FLOW_CACHE[key] = refs
+    return refs
+
+
+def _epe(flow, gt, valid) -> float:
+    return float(np.linalg.norm(flow - gt, axis=-1)[valid].mean())
+
+
+def _flow_row(rendered, ref) -> dict:
+    gt, valid, dis_epe = ref
+    return {"model_epe": _epe(rendered, gt, valid), "dis_epe": dis_epe,
+            "model_magnitude": float(np.linalg.norm(rendered, axis=-1)[valid].mean()),
+            "gt_magnitude": float(np.linalg.norm(gt, axis=-1)[valid].mean()),
+            "pixels": int(valid.sum())}
+
+
+def _flow_summary(rows) -> dict:
+    """Means over the test frames with ground truth; gt_magnitude is also the error of zero flow."""
+    fl = [r["flow"] for r in rows if "flow" in r]
+    out = {key: float(np.mean([f[key] for f in fl])) for key in
+           ("model_epe", "dis_epe", "model_magnitude", "gt_magnitude")}
+    out.update({"frames": len(fl), "pixels": int(sum(f["pixels"] for f in fl))})
+    return out
+
+
+# ------------------------------------------------------------------------------ figures
+def per_frame_plot_png(m: dict, title: str = "") -> bytes:
+    """PNG bytes: whole-image PSNR of each test frame over time, the model and (when evaluated)
+    the baselines, with each curve's mean in the legend."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from .baselines import LABELS
+    rows = m["per_frame"]
+    idx = [r["index"] for r in rows]
+    fig = Figure(figsize=(7.0, 3.6), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in (("mean", "s--"), ("dis", "^--"))
+                                           if name in rows[0]]
+    for key, label, style in curves:
+        vals = [r[key]["psnr"] for r in rows]
+        ax.plot(idx, vals, style, label=f"{label} (mean {np.mean(vals):.2f} dB)", markersize=4)
+    ax.set_xlabel("test frame index (time order)")
+    ax.set_ylabel("PSNR, whole image of masked images (dB)")
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def worst_frame(m: dict) -> int:
+    """Index of the test frame where the model's whole-image PSNR is lowest."""
+    return min(m["per_frame"], key=lambda r: r["model"]["psnr"])["index"]
+
+
+def error_panel_image(pred: np.ndarray, frame) -> np.ndarray:
+    """[H, 3W + 2 gaps, 3] float RGB: ground truth | render | error, full resolution.  The error is
+    mean |render - gt| over RGB (tool pixels of a masked scene set to 0, as scored), through the
+    inferno colour map, saturating at ERROR_FULL_SCALE."""
+    import cv2
+    pred = np.clip(np.asarray(pred, np.float32), 0, 1)
+    gt = frame.image
+    err = np.abs(pred - gt).mean(-1)
+    if frame.mask is not None:
+        err = err * frame.mask
+    e8 = np.clip(err / ERROR_FULL_SCALE * 255 + 0.5, 0, 255).astype(np.uint8)
+    heat = cv2.applyColorMap(e8, cv2.COLORMAP_INFERNO)[..., ::-1].astype(np.float32) / 255.0   # BGR -> RGB
+    gap = np.ones((gt.shape[0], 4, 3), np.float32)
+    return np.concatenate([gt, gap, pred, gap, heat], 1)
+
+
+def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[str, str]:
+    """Write RUN/eval_per_frame.png and RUN/eval_worst.png (both atomically); return their paths."""
+    from .atomic import write_bytes_atomic
+    from .render import render
+    from .run_io import write_png_atomic
+    run_dir = Path(run_dir)
+    plot = run_dir / "eval_per_frame.png"
+    write_bytes_atomic(plot, per_frame_plot_png(m, title))
+    k = worst_frame(m)
+    f = scene.frames[k]
+    pred = render(rt, params, f.camera, f.time).host()["image"]
+    worst = run_dir / "eval_worst.png"
+    write_png_atomic(worst, error_panel_image(pred, f))
+    return {"per_frame_plot": str(plot), "worst_frame_image": str(worst), "worst_frame": k}
 
 
 def _render_fps(rt, params, f, runs: int) -> float:

@@ -34,3 +34,22 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
     from skimage.metrics import structural_similarity
     return float(structural_similarity(np.asarray(pred, np.float64), np.asarray(gt, np.float64),
                                        data_range=1.0, channel_axis=-1))
+
+
+def frame_scores(pred: np.ndarray, gt: np.ndarray, mask=None, with_lpips: bool = False) -> dict:
+    """Every test-frame figure of one prediction, the way the model and the baselines are scored:
+    psnr_masked on the tissue mask, and psnr / ssim / lpips on the masked images (pred * mask,
+    gt * mask).  mask None = every pixel; lpips None unless with_lpips (the caller checks that the
+    weights are installed)."""
+    pred = np.clip(np.asarray(pred, np.float32), 0, 1)
+    gt = np.asarray(gt, np.float32)
+    if pred.shape != gt.shape or gt.ndim != 3 or gt.shape[2] != 3:
+        raise ValueError(f"frame_scores: images must both be [H, W, 3], got {pred.shape} and {gt.shape}")
+    m = np.ones(gt.shape[:2], np.float32) if mask is None else np.asarray(mask, np.float32)
+    pmask, gmask = pred * m[..., None], gt * m[..., None]
+    out = {"psnr": psnr(pmask, gmask), "psnr_masked": psnr_masked(pred, gt, m), "ssim": ssim(pmask, gmask),
+           "lpips": None}
+    if with_lpips:
+        from .lpips import lpips
+        out["lpips"] = lpips(pmask, gmask)
+    return out

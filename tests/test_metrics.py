@@ -88,3 +88,22 @@ def test_restricted_unpickler_refuses_other_globals(tmp_path, monkeypatch):
         L.load_weights(q)
     monkeypatch.setenv(L.ENV_WEIGHTS, str(tmp_path / "none.ckpt"))
     assert not L.lpips_available()
+
+
+def test_frame_scores_is_the_papers_forms_on_masked_images():
+    from endowave_cl.metrics import frame_scores
+    gt = _img(5, 40, 48)
+    pred = np.clip(gt + 0.05 * np.random.default_rng(6).standard_normal(gt.shape), 0, 1).astype(np.float32)
+    mask = np.ones(gt.shape[:2], np.float32)
+    mask[5:20, 10:30] = 0
+    s = frame_scores(pred, gt, mask)
+    m3 = mask[..., None]
+    assert s["psnr"] == psnr(pred * m3, gt * m3)            # whole image of masked images
+    assert s["psnr_masked"] == psnr_masked(pred, gt, mask)  # tissue pixels only
+    assert s["ssim"] == ssim(pred * m3, gt * m3) and s["lpips"] is None
+    assert s["psnr"] > s["psnr_masked"]                       # the zero-filled pixels count as exact
+    # no mask: every pixel, both forms agree; predictions are clipped to [0, 1] as renders are
+    s2 = frame_scores(pred + 2.0, gt)
+    assert s2["psnr"] == pytest.approx(s2["psnr_masked"]) == pytest.approx(psnr(np.ones_like(gt), gt))
+    with pytest.raises(ValueError, match="H, W, 3"):
+        frame_scores(pred[:10], gt)

@@ -1,35 +1,78 @@
 """Evaluate a trained run on its test frames: PSNR (masked form and whole-image form on masked
 images), SSIM, LPIPS-Alex (with the [metrics] extra; else n/a) and rendering FPS (render alone,
-after warm-up). Prints the figures and writes RUN/eval.json."""
+after warm-up), beside two baselines scored the same way on the same frames: the mean of the
+neighbouring training frames and a DIS optical-flow interpolation between them, with the model's
+margin over the better one.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
+end-point error of the flow the model renders, beside DIS's on the same pixels.
+
+Writes RUN/eval.json (every figure, per frame too), RUN/eval_per_frame.png (PSNR of each test
+frame over time, model and baselines) and RUN/eval_worst.png (the model's worst test frame:
+ground truth | render | error, mean |error| over RGB with full scale 0.25), each atomically."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 
 def add_arguments(p) -> None:
     p.add_argument("run", help="run folder written by endowave-cl train")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
-    p.add_argument("--fps-runs", type=int, default=10, help="timed renders for the FPS figure")
+    p.add_argument("--fps-runs", type=int, default=10, help="timed renders for the FPS figure (0: skip)")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="skip the neighbour-mean and DIS-interpolation baselines")
+
+
+def _lp(v) -> str:
+    return "n/a" if v is None else f"{v:.4f}"
+
+
+def table(m: dict) -> str:
+    """The printed comparison: one line per renderer, then the margin and, with gt_flow, the flow."""
+    from ..baselines import LABELS
+    lines = [f"{'on the test frames':<26} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}"]
+    entries = [("model", m)] + [(LABELS[n], b) for n, b in m.get("baselines", {}).items()]
+    for label, e in entries:
+        lines.append(f"{label:<26} {e['psnr']:7.2f} {e['psnr_masked']:7.2f} {e['ssim']:7.4f} {_lp(e['lpips']):>7}")
+    mg = m.get("margin")
+    if mg is not None:
+        lp = "" if mg["lpips"] is None else f", LPIPS {mg['lpips']:+.4f}"
+        lines.append(f"margin over the {LABELS[mg['over']]}: {mg['psnr']:+.2f} dB (masked {mg['psnr_masked']:+.2f} "
+                     f"dB), SSIM {mg['ssim']:+.4f}{lp}  (positive = the model is better)")
+    fl = m.get("flow")
+    if fl is not None:
+        lines.append(f"flow to the next frame vs gt_flow ({fl['frames']} test frames, {fl['pixels']} tissue pixels): "
+                     f"end-point error model {fl['model_epe']:.3f} px, DIS on the two frames "
+                     f"{fl['dis_epe']:.3f} px, zero flow {fl['gt_magnitude']:.3f} px; "
+                     f"mean magnitude model {fl['model_magnitude']:.3f} px, true {fl['gt_magnitude']:.3f} px")
+    lp_note = "" if m["lpips"] is not None else "  (LPIPS n/a: install the [metrics] extra)"
+    lines.append("PSNR: whole image of masked images; masked: tissue pixels only; LPIPS-Alex" + lp_note)
+    return "\n".join(lines)
 
 
 def run(args) -> int:
-    from ..evaluation import evaluate_run
+    from ..atomic import write_bytes_atomic
+    from ..errors import EndowaveError
+    from ..evaluation import evaluate_run, write_figures
     from ..gaussians import upload
     from ..run_io import load_run
     from ..runtime import get_runtime
+    if args.fps_runs < 0:
+        raise EndowaveError(f"--fps-runs must be >= 0, got {args.fps_runs}")
     r = load_run(args.run, args.scene)
+    if not r.scene.test_indices:
+        raise EndowaveError(f"{r.scene.path}: the scene has no test frame to evaluate")
     rt = get_runtime(getattr(args, "device", None))
-    m = evaluate_run(rt, upload(rt, r.gaussians), r.scene, args.fps_runs)
-    m.update({"step": r.step, "gaussians": len(r.gaussians), "checkpoint": str(r.checkpoint)})
-    lp = "n/a (install the [metrics] extra)" if m["lpips"] is None else f"{m['lpips']:.4f}"
-    print(f"{m['test_frames']} test frames, step {r.step}, {m['gaussians']} Gaussians")
-    print(f"PSNR {m['psnr']:.2f} dB (masked form {m['psnr_masked']:.2f} dB)  SSIM {m['ssim']:.4f}  "
-          f"LPIPS {lp}  FPS {m['fps']:.1f} on {rt.name}")
+    params = upload(rt, r.gaussians)
+    m = evaluate_run(rt, params, r.scene, args.fps_runs, with_baselines=not args.no_baselines)
+    m.update({"step": r.step, "gaussians": len(r.gaussians), "checkpoint": str(r.checkpoint),
+              "scene": str(r.scene.path), "size": [r.scene.width, r.scene.height]})
+    title = (f"{Path(r.scene.path).name} {r.scene.width}x{r.scene.height}, step {r.step}, "
+             f"{len(r.gaussians)} Gaussians")
+    m.update(write_figures(args.run, rt, params, r.scene, m, title))
+    fps = "n/a" if m["fps"] is None else f"{m['fps']:.1f}"
+    print(f"{m['test_frames']} test frames of {title}; render FPS {fps} on {rt.name}")
+    print(table(m))
     path = Path(args.run) / "eval.json"
-    tmp = path.with_name(f"eval.json.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(m, indent=1))
-    os.replace(tmp, path)
-    print(f"wrote {path}")
+    write_bytes_atomic(path, json.dumps(m, indent=1).encode())
+    print(f"wrote {path}, {m['per_frame_plot']}, {m['worst_frame_image']} (worst test frame {m['worst_frame']})")
     return 0

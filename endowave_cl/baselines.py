@@ -1,0 +1,126 @@
+"""What a user gets on the test frames without a 4D model (DESIGN.md "Evaluation, the way papers
+report it"): two interpolations between the training frames around each test frame.
+
+- ``mean``: the two neighbouring training frames blended by the test frame's time fraction a,
+  (1 - a) I0 + a I1.  Every test frame of the EndoNeRF split lies midway (a = 1/2), where this is
+  the plain mean of the two frames.
+- ``dis``: flow interpolation.  OpenCV DIS flow both ways between the two neighbours
+  (``data.flow.estimate_flow``, the estimator and preset the trainer's pseudo ground truth uses),
+  each frame backward-warped to the test time and the two blended by the time fraction:
+  W0(p) = I0(p - a F01(p)), W1(p) = I1(p - (1 - a) F10(p)), result (1 - a) W0 + a W1.  The flow at
+  p in the unseen frame is approximated by the flow at p in each neighbour (the usual half-way
+  warp for a = 1/2); samples outside the image repeat the border.
+
+Neighbours are the nearest training frames before and after the test frame in time; at a sequence
+end only one exists, and both baselines are that frame.
+
+``baseline_scores`` scores both on a scene's test frames with ``metrics.frame_scores``, the same
+function the model is scored with, and keeps the result in memory per scene (path, size and split),
+so repeated evaluations (training-time, several runs in one process) compute it once.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Tuple
+
+import cv2
+import numpy as np
+
+from .errors import EndowaveError
+
+NAMES = ("mean", "dis")
+LABELS = {"mean": "neighbour mean", "dis": "DIS flow interpolation"}
+
+# (scene path, width, height, train, test) -> {"lpips": bool, "frames": [per test frame dict]}
+_CACHE: Dict[tuple, dict] = {}
+
+
+def neighbours(scene, k: int) -> Tuple[int, int, float]:
+    """(i0, i1, a): the nearest training frames before and after frame k in time and k's time
+    fraction between them, a = (t_k - t_i0) / (t_i1 - t_i0).  At a sequence end i0 == i1 (the one
+    training frame available) and a = 0."""
+    t = scene.frames[k].time
+    train = [i for i in scene.train_indices if i != k]
+    if not train:
+        raise EndowaveError(f"{scene.path}: no training frame to interpolate test frame {k} from")
+    before = [i for i in train if scene.frames[i].time <= t]
+    after = [i for i in train if scene.frames[i].time >= t]
+    i0 = max(before, key=lambda i: scene.frames[i].time) if before else None
+    i1 = min(after, key=lambda i: scene.frames[i].time) if after else None
+    if i0 is None or i1 is None:
+        i = i1 if i0 is None else i0
+        return i, i, 0.0
+    t0, t1 = scene.frames[i0].time, scene.frames[i1].time
+    return i0, i1, (0.0 if t1 == t0 else (t - t0) / (t1 - t0))
+
+
+def mean_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5) -> np.ndarray:
+    """(1 - a) image0 + a image1: the neighbour mean, weighted by the time fraction a."""
+    return ((1.0 - a) * np.asarray(image0, np.float32) + a * np.asarray(image1, np.float32)).astype(np.float32)
+
+
+def warp_backward(image: np.ndarray, flow: np.ndarray, s: float) -> np.ndarray:
+    """image sampled at p - s flow(p) (bilinear, border repeated): the frame moved a fraction s of
+    the way along its flow."""
+    h, w = flow.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    mx = (u - s * flow[..., 0]).astype(np.float32)
+    my = (v - s * flow[..., 1]).astype(np.float32)
+    return cv2.remap(np.asarray(image, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def dis_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5, method: str = "dis") -> np.ndarray:
+    """Flow interpolation at time fraction a between image0 (a = 0) and image1 (a = 1); see the
+    module docstring.  [H, W, 3] float RGB in [0, 1] in and out."""
+    from .data.flow import estimate_flow
+    if a <= 0.0:
+        return np.asarray(image0, np.float32).copy()
+    if a >= 1.0:
+        return np.asarray(image1, np.float32).copy()
+    f01 = estimate_flow(image0, image1, method)
+    f10 = estimate_flow(image1, image0, method)
+    w0 = warp_backward(image0, f01, a)
+    w1 = warp_backward(image1, f10, 1.0 - a)
+    return mean_interpolation(w0, w1, a)
+
+
+def baseline_images(scene, k: int) -> Dict[str, np.ndarray]:
+    """{"mean": image, "dis": image} for test frame k of a loaded scene."""
+    i0, i1, a = neighbours(scene, k)
+    im0, im1 = scene.frames[i0].image, scene.frames[i1].image
+    return {"mean": mean_interpolation(im0, im1, a), "dis": dis_interpolation(im0, im1, a)}
+
+
+def _key(scene) -> tuple:
+    from pathlib import Path
+    return (str(Path(scene.path).resolve()), scene.width, scene.height, tuple(scene.train_indices),
+            tuple(scene.test_indices))
+
+
+def baseline_scores(scene, with_lpips: bool = False) -> List[dict]:
+    """Per test frame (in scene.test_indices order): {"index", "neighbours": [i0, i1], "fraction",
+    "mean": scores, "dis": scores}, scores as metrics.frame_scores gives them.  Cached in memory
+    per scene path, size and split; an entry without LPIPS is recomputed when LPIPS is asked for."""
+    from .metrics import frame_scores
+    key = _key(scene)
+    hit = _CACHE.get(key)
+    if hit is not None and (hit["lpips"] or not with_lpips):
+        return hit["frames"]
+    rows = []
+    for k in scene.test_indices:
+        f = scene.frames[k]
+        i0, i1, a = neighbours(scene, k)
+        row = {"index": k, "neighbours": [i0, i1], "fraction": a}
+        for name, img in baseline_images(scene, k).items():
+            row[name] = frame_scores(img, f.image, f.mask, with_lpips)
+        rows.append(row)
+    _CACHE[key] = {"lpips": with_lpips, "frames": rows}
+    return rows
+
+
+def summarise(rows: List[dict], name: str) -> dict:
+    """Mean over the test frames of each figure of one baseline (lpips None when not computed)."""
+    out = {}
+    for m in ("psnr", "psnr_masked", "ssim", "lpips"):
+        vals = [r[name][m] for r in rows]
+        out[m] = None if any(v is None for v in vals) else float(np.mean(vals))
+    return out

@@ -1,0 +1,182 @@
+"""evaluation.py and `endowave-cl eval`: the model beside the baselines, the rendered flow against
+gt_flow, the figures, and the cheap training-time call.  Models are hand-made Gaussians (no
+training), so these tests stay fast and do not depend on the training method."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+# 12 frames: test frames 1 and 9 both have a next frame, so both have gt_flow
+SIZE = dict(width=64, height=48, frames=12, deformation=2.0)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    from endowave_cl.data.synth import make_synthetic_scene
+    return make_synthetic_scene(tmp_path_factory.mktemp("ev") / "synth", seed=1, **SIZE)
+
+
+def _gaussians(static: bool, n: int = 1500, seed: int = 0):
+    """Random Gaussians over the synthetic camera's view (depth ~4.4); static = identity 4D
+    rotations, so no Gaussian moves and the rendered flow is exactly 0."""
+    from endowave_cl.gaussians import Gaussians
+    g = Gaussians.random(n, seed=seed, center=(0.0, 0.0, 4.4), spread=1.6, scale=0.12)
+    if static:
+        g.quat_l[:] = (1, 0, 0, 0)
+        g.quat_r[:] = (1, 0, 0, 0)
+    return g
+
+
+def test_training_time_call_is_cheap_and_unchanged(rt, scene_dir, monkeypatch):
+    """Trainer.evaluate's call: no baselines, no LPIPS, no FPS; the flow check is there for gt_flow."""
+    from endowave_cl import baselines
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.evaluation import evaluate_run
+    from endowave_cl.gaussians import upload
+
+    def boom(*a, **k):
+        raise AssertionError("baselines computed in the training-time evaluation")
+    monkeypatch.setattr(baselines, "baseline_scores", boom)
+    scene = load_scene(scene_dir)
+    m = evaluate_run(rt, upload(rt, _gaussians(False)), scene, fps_runs=0, with_lpips=False)
+    assert m["lpips"] is None and m["fps"] is None and "baselines" not in m and "margin" not in m
+    assert m["test_frames"] == 2 and [r["index"] for r in m["per_frame"]] == [1, 9]
+    assert m["psnr"] == pytest.approx(np.mean([r["model"]["psnr"] for r in m["per_frame"]]))
+    assert m["flow"]["frames"] == 2
+    json.dumps(m)                                             # the trainer writes it to train_log.json
+
+
+def test_rendered_flow_error_against_gt_flow(rt, scene_dir):
+    from endowave_cl.data.flow import valid_mask
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.evaluation import evaluate_run
+    from endowave_cl.gaussians import upload
+    from endowave_cl.render import render
+    scene = load_scene(scene_dir)
+    # a model that does not move: its error is the true motion's magnitude, the error of zero flow
+    m0 = evaluate_run(rt, upload(rt, _gaussians(True)), scene, fps_runs=0, with_lpips=False)["flow"]
+    assert m0["model_magnitude"] == 0.0
+    assert m0["model_epe"] == pytest.approx(m0["gt_magnitude"], rel=1e-6) and m0["gt_magnitude"] > 0.5
+    assert m0["dis_epe"] < m0["gt_magnitude"]                 # DIS sees the motion
+    # a moving model, against an independent computation from the files
+    params = upload(rt, _gaussians(False))
+    m = evaluate_run(rt, params, scene, fps_runs=0, with_lpips=False)
+    errs, mags = [], []
+    for k in (1, 9):
+        f0, f1 = scene.frames[k], scene.frames[k + 1]
+        flow = render(rt, params, f0.camera, f0.time, f1.time).host()["flow"]
+        gt = np.load(scene_dir / "gt_flow" / f"{k:06d}.npy")
+        valid = valid_mask(gt, None, f0.mask, f1.mask) > 0.5
+        assert valid.sum() > 0.5 * valid.size and not np.any(valid & (f0.mask == 0))   # tissue only
+        errs.append(np.linalg.norm(flow - gt, axis=-1)[valid].mean())
+        mags.append(np.linalg.norm(flow, axis=-1)[valid].mean())
+        row = next(r for r in m["per_frame"] if r["index"] == k)
+        assert row["flow"]["pixels"] == int(valid.sum())
+    assert np.mean(mags) > 0.05                               # this model does move
+    assert m["flow"]["model_epe"] == pytest.approx(np.mean(errs), rel=1e-5)
+    assert m["flow"]["model_magnitude"] == pytest.approx(np.mean(mags), rel=1e-5)
+    assert m["flow"]["dis_epe"] == m0["dis_epe"]
+
+
+def test_flow_image_channel_does_not_change_the_scored_image(rt, scene_dir):
+    """The evaluation renders test frames with a flow time; the image must be the one without."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import upload
+    from endowave_cl.render import render
+    scene = load_scene(scene_dir)
+    params = upload(rt, _gaussians(False))
+    f = scene.frames[1]
+    a = render(rt, params, f.camera, f.time).host()["image"]
+    b = render(rt, params, f.camera, f.time, scene.frames[2].time).host()["image"]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_gt_flow_of_a_downscaled_scene_and_bad_files(scene_dir, tmp_path):
+    import shutil
+
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.errors import DataError
+    from endowave_cl.evaluation import flow_references
+    half = flow_references(load_scene(scene_dir, downscale=2))
+    gt = np.load(scene_dir / "gt_flow" / "000001.npy")
+    assert half[1][0].shape == (24, 32, 2)
+    np.testing.assert_allclose(half[1][0], cv2.resize(gt, (32, 24), interpolation=cv2.INTER_LINEAR) / 2,
+                               atol=1e-5)
+    bad = tmp_path / "bad"
+    shutil.copytree(scene_dir, bad)
+    np.save(bad / "gt_flow" / "000001.npy", np.zeros((48, 64, 3), np.float32))
+    with pytest.raises(DataError, match=r"000001\.npy.*\[H, W, 2\]"):
+        flow_references(load_scene(bad))
+    (bad / "gt_flow" / "000001.npy").write_bytes(b"not numpy")
+    with pytest.raises(DataError, match=r"000001\.npy: unreadable"):
+        flow_references(load_scene(bad))
+    shutil.rmtree(bad / "gt_flow")
+    assert flow_references(load_scene(bad)) == {}           # real scenes: no flow check
+
+
+def _run_folder(path, scene_dir, g):
+    """A run folder as `endowave-cl train` leaves it: config.json and a checkpoint."""
+    from endowave_cl.atomic import write_bytes_atomic
+    from endowave_cl.train.checkpoint import checkpoint_path, save_checkpoint
+    from endowave_cl.train.config import TrainConfig
+    cfg = TrainConfig().to_dict()
+    path.mkdir()
+    write_bytes_atomic(path / "config.json", json.dumps({"scene": str(scene_dir), **cfg}).encode())
+    save_checkpoint(checkpoint_path(path, 7), g, None, 7, cfg, {})
+    return path
+
+
+def test_eval_command_baselines_margin_flow_and_figures(rt, scene_dir, tmp_path, capsys):
+    from endowave_cl.baselines import baseline_images
+    from endowave_cl.cli import main
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.lpips import lpips_available
+    from endowave_cl.metrics import frame_scores
+    run = _run_folder(tmp_path / "run", scene_dir, _gaussians(False))
+    assert main(["eval", str(run), "--fps-runs", "1"]) == 0
+    out = capsys.readouterr().out
+    m = json.loads((run / "eval.json").read_text())
+    assert {"psnr", "psnr_masked", "ssim", "lpips", "fps", "baselines", "margin", "flow", "per_frame"} <= set(m)
+    assert m["step"] == 7 and (m["lpips"] is None) != lpips_available()
+    # the baselines in eval.json are the test frames' baselines, scored like the model
+    scene = load_scene(scene_dir)
+    for name in ("mean", "dis"):
+        per = [frame_scores(baseline_images(scene, k)[name], scene.frames[k].image, scene.frames[k].mask)
+               for k in scene.test_indices]
+        assert m["baselines"][name]["psnr"] == pytest.approx(np.mean([p["psnr"] for p in per]), abs=1e-6)
+        assert m["baselines"][name]["psnr_masked"] == pytest.approx(np.mean([p["psnr_masked"] for p in per]), abs=1e-6)
+        assert m["baselines"][name]["ssim"] == pytest.approx(np.mean([p["ssim"] for p in per]), abs=1e-6)
+    assert m["per_frame"][0]["neighbours"] == [0, 2] and m["per_frame"][0]["fraction"] == 0.5
+    best = max(("mean", "dis"), key=lambda n: m["baselines"][n]["psnr"])
+    assert m["margin"]["over"] == best
+    assert m["margin"]["psnr"] == pytest.approx(m["psnr"] - m["baselines"][best]["psnr"])
+    assert m["margin"]["psnr_masked"] == pytest.approx(m["psnr_masked"] - m["baselines"][best]["psnr_masked"])
+    # the printed table
+    for text in ("neighbour mean", "DIS flow interpolation", "margin over the", "end-point error model"):
+        assert text in out, out
+    assert f"{m['margin']['psnr']:+.2f} dB" in out
+    # the figures: a plot, and the worst frame as ground truth | render | error at full resolution
+    plot = cv2.imread(str(run / "eval_per_frame.png"))
+    assert plot is not None and plot.shape[0] > 200
+    worst = cv2.imread(str(run / "eval_worst.png"))
+    assert worst.shape == (48, 3 * 64 + 8, 3)
+    k = min(m["per_frame"], key=lambda r: r["model"]["psnr"])["index"]
+    assert m["worst_frame"] == k
+    gt8 = (scene.frames[k].image[..., ::-1] * 255 + 0.5).astype(np.uint8)        # left panel, BGR
+    np.testing.assert_array_equal(worst[:, :64], gt8)
+    assert not any(p.name.endswith(".tmp") for p in run.iterdir())                 # atomic writes
+
+
+def test_eval_command_without_baselines_and_bad_input(rt, scene_dir, tmp_path, capsys):
+    from endowave_cl.cli import main
+    run = _run_folder(tmp_path / "run", scene_dir, _gaussians(True))
+    assert main(["eval", str(run), "--fps-runs", "0", "--no-baselines"]) == 0
+    m = json.loads((run / "eval.json").read_text())
+    assert "baselines" not in m and m["fps"] is None and (run / "eval_per_frame.png").is_file()
+    assert "margin over" not in capsys.readouterr().out
+    assert main(["eval", str(run), "--fps-runs", "-1"]) == 1
+    err = capsys.readouterr().err
+    assert "--fps-runs must be >= 0" in err and len(err.strip().splitlines()) == 1
