@@ -14,7 +14,6 @@ parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -23,14 +22,9 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..atomic import write_bytes_atomic
-from ..errors import EndowaveError
 from ..gaussians import Gaussians, download, upload
 from ..render import DEPTH, FLOW, render, render_backward
-
-
-class TrainingDiverged(EndowaveError):
-    """A step produced a non-finite loss or gradient; it was not applied."""
+from .guard import TrainingDiverged  # noqa: F401  (a non-finite step or a diverged run)
 
 
 @dataclass
@@ -51,22 +45,25 @@ def scene_extent(g: Gaussians) -> float:
 
 class Trainer:
     def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True):
-        from ..ops.adam import DeviceAdam
-        from .checkpoint import latest_checkpoint, load_checkpoint
-
+        from .run_folder import RunSession
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        # the run folder describes itself: render / eval / export read this
-        write_bytes_atomic(self.run_dir / "config.json", json.dumps(
-            {"scene": str(Path(scene.path).resolve()), **cfg.to_dict()}, indent=1).encode())
+        # creates and locks the run folder; config.json is written by run.start once the model is ready
+        self._run = RunSession(self.run_dir, log, resume)
+        try:
+            self._init_model(scene, cfg, rt, resume)
+        except BaseException:
+            self._run.abort()
+            raise
+
+    def _init_model(self, scene, cfg, rt, resume):
+        from ..ops.adam import DeviceAdam
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.history: List[Dict[str, float]] = []
 
-        ckpt_path = latest_checkpoint(self.run_dir) if resume else None
-        if ckpt_path is not None:
-            ck = load_checkpoint(ckpt_path)
+        ckpt_path, ck = self._run.resume_point(scene)   # newest readable checkpoint of this scene
+        if ck is not None:
             g = ck["gaussians"]
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
@@ -83,6 +80,7 @@ class Trainer:
             self.adam.load_state_dict(ck["adam_state"])
         self._reset_stats()
         self.targets = self._prepare_targets()
+        self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
     def group_lrs(self, step: int) -> Dict[str, float]:
@@ -154,8 +152,9 @@ class Trainer:
         if any_nonfinite(self.rt, grads.values()):
             bad.append("gradients")
         if bad:
-            raise TrainingDiverged(f"step {self.step} (frame {k}): non-finite {', '.join(bad)}; the step was not "
-                                   f"applied. Last checkpoint: {self.run_dir}. Try lower learning rates.")
+            raise self._run.fail(self, TrainingDiverged(
+                f"step {self.step} (frame {k}): non-finite {', '.join(bad)}; the step was not applied. "
+                f"Try lower learning rates"))
 
     # ------------------------------------------------------------------ density control
     def densify(self):
@@ -187,14 +186,9 @@ class Trainer:
         return evaluate_run(self.rt, self.params, self.scene, fps_runs=0, with_lpips=False)
 
     def save(self):
-        from .checkpoint import save_checkpoint
-        path = self.run_dir / f"checkpoint_{self.step:07d}.npz"
-        save_checkpoint(path, download(self.params), self.adam.state_dict(), self.step, self.cfg.to_dict(),
-                        {"extent": self.extent, "scene": str(self.scene.path)})
-        # keep the two newest checkpoints
-        for old in sorted(self.run_dir.glob("checkpoint_*.npz"))[:-2]:
-            old.unlink()
-        return path
+        """Checkpoint after the divergence guard passed; keeps the two newest and the best
+        (train/run_folder.py), and writes train_log.json."""
+        return self._run.save(self)
 
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
@@ -204,8 +198,9 @@ class Trainer:
         bar = tqdm(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
                    desc="train", unit="it")
         t_start = time.perf_counter()
-        ema = None
+        ema = self._run.ema                  # restored on resume
         while self.step < c.iterations:
+            self._run.poll(self)             # SIGINT / SIGTERM: save at this step boundary and stop
             k = order[int(self.rng.integers(len(order)))]
             parts = self.train_step(k)
             ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
@@ -214,10 +209,12 @@ class Trainer:
                 self.densify()
             if s > 0 and s % c.opacity_reset_every == 0 and s <= c.densify_until:
                 self.reset_opacity()
+                self._run.guard.reset_reference(s)   # the PSNR dips on purpose
             if s % c.log_every == 0 or s == c.iterations:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
                 self.history.append({"step": s, **{k2: float(v) for k2, v in ema.items()},
                                      "gaussians": len(self.params["means"])})
+            self._run.after_step(self, s, ema)   # divergence guard (PSNR collapse; parameters at log steps)
             if c.eval_every and s % c.eval_every == 0 and s < c.iterations:
                 m = self.evaluate()
                 bar.write(f"step {s}: test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f}), "
@@ -230,6 +227,5 @@ class Trainer:
         self.save()
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds})
-        write_bytes_atomic(self.run_dir / "train_log.json",
-                           json.dumps({"final": metrics, "history": self.history}, indent=1).encode())
+        self._run.finish(self, metrics)     # train_log.json (strict JSON), release the run folder lock
         return metrics
