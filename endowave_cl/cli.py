@@ -94,8 +94,9 @@ def main(argv=None) -> int:
         return 2
     from .errors import EndowaveError
     from .runtime import KernelBuildError, OpenCLUnavailable
+    old_sigterm = None
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143 instead of a silent kill
+        old_sigterm = signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143, not a silent kill
     name = f"endowave-cl {args.command}"
     try:
         try:
@@ -124,6 +125,9 @@ def main(argv=None) -> int:
         print(f"{name}: error: unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "
               f"(set ENDOWAVE_CL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
         return 1
+    finally:
+        if old_sigterm is not None:
+            signal.signal(signal.SIGTERM, old_sigterm)
 
 
 if __name__ == "__main__":
