@@ -55,7 +55,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM outside a training loop (the loop itself saves and stops, train/run_folder.py)."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
+def _oserror_text(e: OSError) -> str:
+    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+    return f"{where}{e.strerror or e}"
+
+
+def _close_progress_bars() -> None:
+    """End an unfinished tqdm bar so the error message starts on its own line."""
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is None:
+        return
+    for bar in list(getattr(tqdm.tqdm, "_instances", ())):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001  best effort: never mask the error being reported
+            pass
+
+
 def main(argv=None) -> int:
+    import os
+    import signal
+    import threading
     import warnings
     # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
     warnings.filterwarnings("ignore", message="Non-empty compiler output")
@@ -66,14 +94,40 @@ def main(argv=None) -> int:
         return 2
     from .errors import EndowaveError
     from .runtime import KernelBuildError, OpenCLUnavailable
+    old_sigterm = None
+    if threading.current_thread() is threading.main_thread():
+        old_sigterm = signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143, not a silent kill
+    name = f"endowave-cl {args.command}"
     try:
-        return int(args._module.run(args) or 0)
-    except (EndowaveError, OpenCLUnavailable, KernelBuildError, FileNotFoundError) as e:
-        print(f"endowave-cl {args.command}: error: {e}", file=sys.stderr)
+        try:
+            return int(args._module.run(args) or 0)
+        except BaseException:
+            _close_progress_bars()
+            raise
+    except (EndowaveError, OpenCLUnavailable, KernelBuildError) as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"endowave-cl {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except OSError as e:   # a file or folder the command could not read or write
+        print(f"{name}: error: {_oserror_text(e)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt as e:
+        from .train.run_folder import StopRequested
+        sigterm = isinstance(e, Terminated) or (isinstance(e, StopRequested) and "SIGTERM" in str(e))
+        what = str(e) if isinstance(e, StopRequested) else ("terminated" if sigterm else "interrupted")
+        print(f"{name}: {what}", file=sys.stderr)
+        return 143 if sigterm else 130
+    except MemoryError:
+        print(f"{name}: error: out of memory", file=sys.stderr)
+        return 1
+    except Exception as e:  # noqa: BLE001  a bug or an unforeseen input: one line, no traceback
+        if os.environ.get("ENDOWAVE_CL_DEBUG"):
+            raise
+        print(f"{name}: error: unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "
+              f"(set ENDOWAVE_CL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
+        return 1
+    finally:
+        if old_sigterm is not None:
+            signal.signal(signal.SIGTERM, old_sigterm)
 
 
 if __name__ == "__main__":

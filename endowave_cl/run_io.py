@@ -22,23 +22,30 @@ class LoadedRun:
 
 def load_run(run_dir, scene_override=None) -> LoadedRun:
     from .data.scene import load_scene
-    from .train.checkpoint import latest_checkpoint, load_checkpoint
+    import sys
     from .train.config import TrainConfig
+    from .train.run_folder import load_newest_good_checkpoint
     run = Path(run_dir)
     cfg_file = run / "config.json"
     if not cfg_file.is_file():
         raise EndowaveError(f"{run}: not a training run (no config.json); train one with endowave-cl train")
     try:
         d = json.loads(cfg_file.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise EndowaveError(f"{cfg_file}: not valid JSON: {e}") from None
+    except OSError as e:
+        raise EndowaveError(f"{cfg_file}: cannot read ({e.strerror or e})") from None
+    if not isinstance(d, dict):
+        raise EndowaveError(f"{cfg_file}: expected a JSON object")
     scene_path = scene_override or d.pop("scene", None)
     d.pop("scene", None)
+    if not isinstance(scene_path, str):
+        raise EndowaveError(f"{cfg_file}: no scene path recorded; pass --scene")
     cfg = TrainConfig.from_dict(d, str(cfg_file))
-    ck = latest_checkpoint(run)
+    # the newest checkpoint that reads back (an older one, with a warning, if the newest is corrupt)
+    ck, state = load_newest_good_checkpoint(run, log=lambda m: print(m, file=sys.stderr))
     if ck is None:
         raise EndowaveError(f"{run}: no checkpoint_*.npz yet")
-    state = load_checkpoint(ck)
     scene = load_scene(scene_path, downscale=cfg.downscale)
     return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
 

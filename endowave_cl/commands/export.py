@@ -9,18 +9,30 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    import sys
     from pathlib import Path
 
     from ..errors import EndowaveError
     from ..export_ply import export_ply
-    from ..train.checkpoint import latest_checkpoint, load_checkpoint
+    from ..train.run_folder import load_newest_good_checkpoint
     if not 0.0 <= args.time <= 1.0:
         raise EndowaveError(f"--time must be in [0, 1], got {args.time}")
-    ck = latest_checkpoint(Path(args.run))
+    run = Path(args.run)
+    if not run.is_dir():
+        raise EndowaveError(f"{run}: run folder not found")
+    out = Path(args.out) if args.out else run / f"model_t{args.time:.3f}.ply"
+    if out.is_dir():
+        raise EndowaveError(f"{out}: is a folder; --out names the PLY file to write")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise EndowaveError(f"{out}: cannot write there: {parent} is a file")
+            break
+    # the newest checkpoint that reads back (an older one, with a warning, if the newest is corrupt)
+    ck, state = load_newest_good_checkpoint(run, log=lambda m: print(m, file=sys.stderr))
     if ck is None:
         raise EndowaveError(f"{args.run}: no checkpoint_*.npz found")
-    g = load_checkpoint(ck)["gaussians"]
-    out = Path(args.out) if args.out else Path(args.run) / f"model_t{args.time:.3f}.ply"
+    g = state["gaussians"]
     n = export_ply(out, g, args.time)
     print(f"wrote {out} ({n if n is not None else '?'} Gaussians at t = {args.time})")
     return 0

@@ -43,6 +43,9 @@ def gt_epe(scene, result):
 def run(args) -> int:
     import numpy as np
     from ..data import flow_for_scene, load_scene
+    from .train import check_downscale_arg, check_downscaled_size
+    check_downscale_arg(args.downscale)
+    check_downscaled_size(args.scene, args.downscale)
     scene = load_scene(args.scene, downscale=args.downscale)
     print(f"{args.scene}: {scene.summary()}")
     start = time.perf_counter()

@@ -27,10 +27,18 @@ def run(args) -> int:
     from ..run_io import load_run, write_png_atomic
     from ..runtime import get_runtime
 
+    import math
+    from ..errors import EndowaveError
+    if not (math.isfinite(args.fps) and args.fps > 0):
+        raise EndowaveError(f"--fps must be a positive number, got {args.fps}")
     r = load_run(args.run, args.scene)
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
     out = Path(args.run) / "render"
+    from ..atomic import stale_temporaries
+    for folder in (out, out / "frames", out / "depth"):   # left by a killed render
+        for p in stale_temporaries(folder):
+            p.unlink()
     frames = r.scene.frames
     idx = range(len(frames)) if args.all else r.scene.test_indices
     video_frames = []
@@ -48,16 +56,20 @@ def run(args) -> int:
             video_frames.append((img * 255 + 0.5).astype(np.uint8)[..., ::-1])
     if video_frames:
         path = out / "video.mp4"
-        tmp = out / f"video.tmp{os.getpid()}.mp4"
+        from ..atomic import default_file_mode, temp_prefix
+        tmp = out / f"{temp_prefix('video.mp4')}w.tmp.mp4"   # pid in the name: stale ones are removed
         hgt, wid = video_frames[0].shape[:2]
         vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), args.fps, (wid, hgt))
         for fr in video_frames:
             vw.write(fr)
         vw.release()
         if tmp.is_file() and tmp.stat().st_size > 0:
+            os.chmod(tmp, default_file_mode())
             os.replace(tmp, path)
             print(f"video: {path}")
         else:
+            if tmp.exists():
+                tmp.unlink()
             print("video: OpenCV could not write mp4 here; frames are written as PNG")
     print(f"wrote {len(list(idx))} frames and depth images under {out} (depth PNG = depth x {DEPTH_PNG_SCALE:g})")
     return 0

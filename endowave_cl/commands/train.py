@@ -4,8 +4,12 @@ Examples:
   endowave-cl train --demo --out runs/demo
   endowave-cl train ../shared/data/endonerf/pulling_soft_tissues --out runs/pulling --downscale 2
   endowave-cl train SCENE --out RUN --no-flow --no-wavelet      # the ablation switches
-A run folder holds config.json, checkpoints (checkpoint_*.npz, the two newest) and train_log.json;
-training an existing run folder resumes from its newest checkpoint (--restart starts over).
+A run folder holds config.json, checkpoints (checkpoint_*.npz: the two newest and the best) and
+train_log.json; training an existing run folder resumes from its newest readable checkpoint
+(--restart starts over and moves the earlier run's files to RUN/previous_run/).  One train at a
+time per run folder (RUN/.lock).  SIGINT / SIGTERM save a checkpoint and stop; a run whose
+parameters turn NaN, run away or whose training PSNR collapses stops with an error (exit 1), and the
+checkpoints it kept are from before.
 """
 from __future__ import annotations
 
@@ -32,7 +36,8 @@ def add_arguments(p) -> None:
     p.add_argument("--no-depth", action="store_true", help="turn the depth loss off")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config key, e.g. --set lambda_flow=0.05 (repeatable)")
-    p.add_argument("--restart", action="store_true", help="ignore checkpoints in --out and start over")
+    p.add_argument("--restart", action="store_true",
+                   help="start over; the earlier run's files move to RUN/previous_run/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -47,6 +52,8 @@ def build_config(args):
         overrides[k.strip()] = v.strip()
     cfg = load_config(args.config, overrides)
     if args.iterations is not None:
+        if args.iterations < 1:
+            raise EndowaveError(f"--iterations must be at least 1, got {args.iterations}")
         cfg.iterations = args.iterations
     elif args.demo and not args.config and "iterations" not in overrides:
         cfg.iterations = DEMO_ITERATIONS
@@ -56,6 +63,7 @@ def build_config(args):
         if "max_gaussians" not in overrides:
             cfg.max_gaussians = DEMO_MAX_GAUSSIANS
     if args.downscale is not None:
+        check_downscale_arg(args.downscale)
         cfg.downscale = args.downscale
     if getattr(args, "minutes", None) is not None:
         if not args.minutes > 0:
@@ -64,7 +72,38 @@ def build_config(args):
     cfg.use_flow &= not args.no_flow
     cfg.use_wavelet &= not args.no_wavelet
     cfg.use_depth &= not args.no_depth
+    from ..train.config import validate_config
+    validate_config(cfg, "the command line")
     return cfg
+
+
+MIN_IMAGE_SIZE = 16   # pixels per side after --downscale: the flow estimator and the SSIM window need room
+
+
+def check_downscale_arg(downscale: float) -> None:
+    import math
+    from ..errors import EndowaveError
+    if not (math.isfinite(downscale) and downscale >= 1):
+        raise EndowaveError(f"--downscale must be a finite number >= 1, got {downscale}")
+
+
+def check_downscaled_size(scene_path, downscale: float) -> None:
+    """Refuse a downscale that leaves too few pixels, before the scene loader or OpenCV fail on it."""
+    import cv2
+    from ..data.images import list_images
+    from ..errors import EndowaveError
+    img_dir = Path(scene_path) / "images"
+    if downscale == 1 or not img_dir.is_dir():
+        return                       # the scene loader reports a missing folder
+    files = list_images(img_dir)
+    img = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED) if files else None
+    if img is None:
+        return                       # the scene loader names the unreadable file
+    h, w = img.shape[:2]
+    w2, h2 = int(round(w / downscale)), int(round(h / downscale))
+    if min(w2, h2) < MIN_IMAGE_SIZE:
+        raise EndowaveError(f"downscale {downscale:g} leaves {w2}x{h2} pixels of the {w}x{h} images in "
+                            f"{img_dir} (at least {MIN_IMAGE_SIZE} per side needed)")
 
 
 def run(args) -> int:
@@ -73,10 +112,16 @@ def run(args) -> int:
     from ..runtime import get_runtime
     from ..train.trainer import Trainer
 
+    import warnings
+    # numpy overflows in densification only on parameters that have already diverged; the divergence
+    # guard reports that in one line, so its warnings would only be noise
+    warnings.filterwarnings("ignore", message="overflow encountered", category=RuntimeWarning)
     if args.demo == bool(args.scene):
         raise EndowaveError("give a SCENE folder or --demo (not both)")
     cfg = build_config(args)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise EndowaveError(f"{out}: exists and is not a folder (--out must be a run folder)")
     scene_path = Path(args.scene) if args.scene else out / "demo_scene"
     if args.demo and not (scene_path / "poses_bounds.npy").is_file():
         from ..data.synth import make_synthetic_scene
@@ -84,8 +129,13 @@ def run(args) -> int:
         print(f"generating the demo scene ({w}x{h}, {n} frames) in {scene_path}")
         make_synthetic_scene(scene_path, width=w, height=h, frames=n, seed=0, force=True)
     # load and check everything before touching the run folder
+    check_downscaled_size(scene_path, cfg.downscale)
     scene = load_scene(scene_path, downscale=cfg.downscale, use_depth=cfg.use_depth)
     print(f"scene {scene_path}: {scene.summary()}")
+    if not scene.test_indices or not scene.train_indices:
+        raise EndowaveError(f"{scene_path}: {len(scene.frames)} frame(s) give {len(scene.train_indices)} "
+                            f"training and {len(scene.test_indices)} test frames; training needs at least "
+                            f"one of each (at least 2 frames: frame 1 is the first test frame)")
     if not scene.has_depth:
         cfg.use_depth = False
     rt = get_runtime(getattr(args, "device", None))

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..atomic import write_bytes_atomic  # noqa: F401  (re-exported for the data modules)
+from ..atomic import _umask, temp_prefix, write_bytes_atomic  # noqa: F401  (write_bytes_atomic is re-exported for the data modules)
 
 
 def save_npy_atomic(path, array: np.ndarray) -> None:
@@ -51,8 +51,9 @@ def atomic_directory(final, force: bool = False):
         if any(final.iterdir()) and not force:
             raise DataError(f"{final}: folder is not empty (use --force to replace it)")
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
     try:
+        os.chmod(tmp, 0o777 & ~_umask())   # mkdtemp's 0700 would make the finished folder private
         yield tmp
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -129,15 +129,68 @@ def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_
         if key not in _FIELDS:
             raise EndowaveError(f"{source}: unknown key '{key}'")
         setattr(cfg, key, _coerce(key, value, source, from_text))
-    for name in ("iterations", "densify_every", "split_children"):
-        if getattr(cfg, name) < 1:
-            raise EndowaveError(f"{source}: key '{name}' must be at least 1, got {getattr(cfg, name)}")
-    if not cfg.minutes >= 0 or cfg.minutes == float("inf"):
-        raise EndowaveError(f"{source}: key 'minutes' must be a finite number >= 0 (0: no time budget), "
-                            f"got {cfg.minutes}")
-    if not cfg.flow_huber_delta > 0:
-        raise EndowaveError(f"{source}: key 'flow_huber_delta' must be > 0 (inf: pure squared error), "
-                            f"got {cfg.flow_huber_delta}")
+    validate_config(cfg, source)
+
+
+# The range every numeric key must lie in: (low, high, low inclusive, high inclusive); None = open.
+# Learning rates and loss weights are >= 0 (a negative learning rate climbs the loss: a negative
+# lr_opacity prunes every Gaussian); counts of steps or items are at least 1 where they divide or
+# size something; inf is refused everywhere except flow_huber_delta (inf: pure squared error).
+_AT_LEAST_1 = (1, None, True, False)
+_NON_NEGATIVE = (0, None, True, False)
+_POSITIVE = (0, None, False, False)
+_UNIT = (0, 1, True, True)
+RANGES = {
+    "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
+    "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
+    "downscale": (1, None, True, False), "init_points": _AT_LEAST_1, "init_time_scale": _NON_NEGATIVE,
+    "max_gaussians": _AT_LEAST_1,
+    "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
+    "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
+    "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
+    "lr_phase": _NON_NEGATIVE,
+    "densify_from": _NON_NEGATIVE, "densify_every": _AT_LEAST_1, "densify_until": _NON_NEGATIVE,
+    "densify_grad_threshold": _NON_NEGATIVE, "percent_dense": _NON_NEGATIVE, "split_children": _AT_LEAST_1,
+    "split_scale_divisor": _POSITIVE, "prune_opacity": (0, 1, True, False), "prune_screen_size": _POSITIVE,
+    "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
+    "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
+    "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
+}
+# keys whose value is fixed in this version: the model layout (gaussians.py SH_DEGREE,
+# TEMPORAL_FREQS) is compiled into the kernels and the initialisation; any other value would be
+# recorded in config.json and silently ignored
+FIXED = {"sh_degree": 3, "temporal_freqs": 2}
+INF_ALLOWED = {"flow_huber_delta"}
+
+
+def _range_text(low, high, low_in, high_in) -> str:
+    if high is None:
+        return f"{'at least' if low_in else '>'} {low:g}"
+    return f"in {'[' if low_in else '('}{low:g}, {high:g}{']' if high_in else ')'}"
+
+
+def validate_config(cfg: TrainConfig, source: str) -> None:
+    """Every key in its range; one-line EndowaveError naming the source and the key otherwise."""
+    import math
+    for name, (low, high, low_in, high_in) in RANGES.items():
+        v = getattr(cfg, name)
+        if isinstance(v, float) and math.isnan(v):
+            raise EndowaveError(f"{source}: key '{name}' is NaN")
+        if isinstance(v, float) and math.isinf(v) and name not in INF_ALLOWED:
+            raise EndowaveError(f"{source}: key '{name}' must be finite, got {v}")
+        ok = (v >= low if low_in else v > low) and (high is None or (v <= high if high_in else v < high))
+        if not ok:
+            how = ("must be " + _range_text(low, high, low_in, high_in)
+                   + (" (inf: pure squared error)" if name in INF_ALLOWED else ""))
+            raise EndowaveError(f"{source}: key '{name}' {how}, got {v:g}")
+    for name, want in FIXED.items():
+        if getattr(cfg, name) != want:
+            raise EndowaveError(f"{source}: key '{name}' must be {want} (the model layout is fixed in this "
+                                f"version; other values are not implemented), got {getattr(cfg, name)}")
+    from ..data.flow import METHODS
+    if cfg.flow_method not in METHODS:
+        raise EndowaveError(f"{source}: key 'flow_method' must be one of {', '.join(METHODS)}, "
+                            f"got {cfg.flow_method!r}")
 
 
 def _toml_module():
@@ -158,7 +211,11 @@ def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = No
                 data = toml.load(f)
         except FileNotFoundError:
             raise EndowaveError(f"{path}: config file does not exist") from None
-        except toml.TOMLDecodeError as e:
+        except IsADirectoryError:
+            raise EndowaveError(f"{path}: is a folder, not a TOML config file") from None
+        except OSError as e:
+            raise EndowaveError(f"{path}: cannot read the config file ({e.strerror or e})") from None
+        except (toml.TOMLDecodeError, UnicodeDecodeError) as e:
             raise EndowaveError(f"{path}: not valid TOML: {e}") from None
         if "train" in data and isinstance(data["train"], dict):
             rest = {k: v for k, v in data.items() if k != "train"}

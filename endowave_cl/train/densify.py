@@ -20,7 +20,8 @@ Rules (3DGS defaults from TrainConfig):
   between training frames.  The parent is removed.
 - When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
   it, those with the largest gradient are taken first.
-- Then PRUNE: sigmoid(opacity) < prune_opacity; and, when ``prune_big`` (off by default; 3DGS
+- Then PRUNE: sigmoid(opacity) < prune_opacity, or a covariance that overflows float64 (log scales
+  run away); and, when ``prune_big`` (off by default; 3DGS
   turns it on once step > opacity_reset_every, pass prune_big=step > cfg.opacity_reset_every),
   Gaussians whose max screen radius (pixels) exceeded prune_screen_size
   or whose spatial size exceeds prune_world_size x extent.  Screen radii are only known
@@ -83,9 +84,13 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     count = np.asarray(count, np.float64).reshape(N)
     max_radius = np.asarray(max_radius, np.float64).reshape(N)
     mean_grad = np.where(count > 0, grad_accum / np.maximum(count, 1.0), 0.0)  # [N]
-    max_scale = spatial_size(covariance_4d(g)) if N else np.zeros(0)  # [N]
+    with np.errstate(all="ignore"):
+        cov = covariance_4d(g) if N else np.zeros((0, 4, 4))                   # [N, 4, 4]
+    sane = np.isfinite(cov).all(axis=(1, 2))      # log scales that overflow: removed below
+    max_scale = np.full(N, np.inf)
+    max_scale[sane] = spatial_size(cov[sane])                                  # [N]
 
-    candidate = mean_grad >= cfg.densify_grad_threshold
+    candidate = (mean_grad >= cfg.densify_grad_threshold) & sane
     budget = max(0, int(cfg.max_gaussians) - N)
     children = int(cfg.split_children)
     small = max_scale <= cfg.percent_dense * extent
@@ -123,9 +128,12 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     radius_known = np.concatenate([max_radius[keep_rows], np.zeros(clone_rows.size + parents.size)])
 
     # -- prune ------------------------------------------------------------------------------------
-    prune = sigmoid(new["opacity"]) < cfg.prune_opacity
+    prune = (sigmoid(new["opacity"]) < cfg.prune_opacity) | ~np.concatenate(
+        [sane[keep_rows], np.ones(clone_rows.size + parents.size, bool)])
     if prune_big:
-        new_max_scale = spatial_size(covariance_4d(Gaussians(**new))) if source.size else np.zeros(0)
+        new_max_scale = np.concatenate([max_scale[keep_rows], max_scale[clone_rows],
+                                        spatial_size(covariance_4d(Gaussians(**child))) if parents.size
+                                        else np.zeros(0)])
         prune |= radius_known > cfg.prune_screen_size
         prune |= new_max_scale > cfg.prune_world_size * extent
     alive = ~prune

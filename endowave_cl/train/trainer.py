@@ -14,7 +14,6 @@ parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -23,14 +22,9 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..atomic import write_bytes_atomic
-from ..errors import EndowaveError
 from ..gaussians import Gaussians, download, upload
 from ..render import DEPTH, FLOW, render, render_backward
-
-
-class TrainingDiverged(EndowaveError):
-    """A step produced a non-finite loss or gradient; it was not applied."""
+from .guard import TrainingDiverged  # noqa: F401  (a non-finite step or a diverged run)
 
 
 @dataclass
@@ -51,24 +45,27 @@ def scene_extent(g: Gaussians) -> float:
 
 class Trainer:
     def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True):
-        from ..ops.adam import DeviceAdam
-        from .checkpoint import latest_checkpoint, load_checkpoint
-
+        from .run_folder import RunSession
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        # the run folder describes itself: render / eval / export read this
-        write_bytes_atomic(self.run_dir / "config.json", json.dumps(
-            {"scene": str(Path(scene.path).resolve()), **cfg.to_dict()}, indent=1).encode())
+        # creates and locks the run folder; config.json is written by run.start once the model is ready
+        self._run = RunSession(self.run_dir, log, resume)
+        try:
+            self._init_model(scene, cfg, rt, resume)
+        except BaseException:
+            self._run.abort()
+            raise
+
+    def _init_model(self, scene, cfg, rt, resume):
+        from ..ops.adam import DeviceAdam
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.history: List[Dict[str, float]] = []
 
         self.flows = self._load_flows()
-        ckpt_path = latest_checkpoint(self.run_dir) if resume else None
-        if ckpt_path is not None:
-            ck = load_checkpoint(ckpt_path)
+        ckpt_path, ck = self._run.resume_point(scene)   # newest readable checkpoint of this scene
+        if ck is not None:
             g = ck["gaussians"]
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
@@ -86,6 +83,7 @@ class Trainer:
             self.adam.load_state_dict(ck["adam_state"])
         self._reset_stats()
         self.targets = self._prepare_targets()
+        self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
     def group_lrs(self, step: int) -> Dict[str, float]:
@@ -163,13 +161,15 @@ class Trainer:
         if any_nonfinite(self.rt, grads.values()):
             bad.append("gradients")
         if bad:
-            raise TrainingDiverged(f"step {self.step} (frame {k}): non-finite {', '.join(bad)}; the step was not "
-                                   f"applied. Last checkpoint: {self.run_dir}. Try lower learning rates.")
+            raise self._run.fail(self, TrainingDiverged(
+                f"step {self.step} (frame {k}): non-finite {', '.join(bad)}; the step was not applied. "
+                f"Try lower learning rates"))
 
     # ------------------------------------------------------------------ density control
     def densify(self):
         """3DGS density control in 4D on the host: clone, split (children sampled in space-time), prune."""
         from .densify import densify_and_prune, moment_source_index
+        self._run.check_parameters(self)     # non-finite or runaway parameters stop the run here
         info: Dict[str, object] = {}
         new_g, source = densify_and_prune(
             download(self.params), self.stats["grad_accum"].get(), self.stats["count"].get(),
@@ -196,14 +196,9 @@ class Trainer:
         return evaluate_run(self.rt, self.params, self.scene, fps_runs=0, with_lpips=False)
 
     def save(self):
-        from .checkpoint import save_checkpoint
-        path = self.run_dir / f"checkpoint_{self.step:07d}.npz"
-        save_checkpoint(path, download(self.params), self.adam.state_dict(), self.step, self.cfg.to_dict(),
-                        {"extent": self.extent, "scene": str(self.scene.path)})
-        # keep the two newest checkpoints
-        for old in sorted(self.run_dir.glob("checkpoint_*.npz"))[:-2]:
-            old.unlink()
-        return path
+        """Checkpoint after the divergence guard passed; keeps the two newest and the best
+        (train/run_folder.py), and writes train_log.json."""
+        return self._run.save(self)
 
     # ------------------------------------------------------------------ time budget
     def _start_budget(self):
@@ -244,8 +239,9 @@ class Trainer:
         t_start = time.perf_counter()
         budget = self._start_budget()
         step_times: List[float] = []
-        ema = None
+        ema = self._run.ema                  # restored on resume
         while self.step < c.iterations:
+            self._run.poll(self)             # SIGINT / SIGTERM: save at this step boundary and stop
             if budget is not None and budget.out_of_time():
                 bar.write(f"time budget of {c.minutes:g} min reached at step {self.step}")
                 break
@@ -259,12 +255,14 @@ class Trainer:
                 self.densify()
             if s > 0 and s % c.opacity_reset_every == 0 and s <= c.densify_until:
                 self.reset_opacity()
+                self._run.guard.reset_reference(s)   # the PSNR dips on purpose
             if budget is not None and self._replan(budget, step_times, bar):
                 bar.total = c.iterations
             if s % c.log_every == 0 or s == c.iterations:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
                 self.history.append({"step": s, **{k2: float(v) for k2, v in ema.items()},
                                      "gaussians": len(self.params["means"])})
+            self._run.after_step(self, s, ema)   # divergence guard (PSNR collapse; parameters at log steps)
             if c.eval_every and s % c.eval_every == 0 and s < c.iterations:
                 m = self.evaluate()
                 bar.write(f"step {s}: test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f}), "
@@ -277,6 +275,5 @@ class Trainer:
         self.save()
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds})
-        write_bytes_atomic(self.run_dir / "train_log.json",
-                           json.dumps({"final": metrics, "history": self.history}, indent=1).encode())
+        self._run.finish(self, metrics)     # train_log.json (strict JSON), release the run folder lock
         return metrics
