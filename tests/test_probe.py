@@ -128,3 +128,24 @@ def test_tiny_scene_has_work_for_every_lane():
     ranges = arrays["tile_ranges"]
     assert ((ranges[:, 1] - ranges[:, 0]) >= 3).all()
     assert np.isfinite(arrays["conic"]).all()
+
+
+def test_variants_too_big_for_local_memory_are_skipped(fresh, monkeypatch, capfd):
+    """A device with little local memory: lane counts whose kernels do not fit are passed over
+    without a probe, and the line says why (fewer lanes need more: more work-items per tile)."""
+    class Small:
+        name, is_gpu, is_oclgrind = "small device", False, False
+        local_mem_size = max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], 16),
+                             RZ.fwd_vec_local_bytes(6, 16, 4))   # 16 lanes just fit, 8 and 4 do not
+    probed = []
+
+    def fake_verdict(rt, C, vw, bw):
+        probed.append(vw)
+        return P.Verdict(False, "planted failure", 0.0, "build")
+    monkeypatch.setattr(P, "verdict", fake_verdict)
+    ch = RZ.raster_choice(Small(), 6)
+    assert ch == RZ.RasterChoice("scalar") and probed == [16]
+    line, = capfd.readouterr().err.strip().splitlines()
+    assert "16 lanes: planted failure" in line
+    need8 = max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], 8), RZ.fwd_vec_local_bytes(6, 8, 4))
+    assert f"8 lanes: needs {need8} bytes of local memory" in line and "4 lanes: needs" in line

@@ -13,7 +13,7 @@ def _rasterizer(entry) -> str:
     from ..ops.rasterize import explain_choice
     from ..runtime import Runtime
     try:
-        ch, notes = explain_choice(Runtime(entry, disk_cache=True), 6)
+        ch, notes, _ = explain_choice(Runtime(entry, disk_cache=True), 6)
     except Exception as ex:   # a device that cannot even make a context
         return f"unavailable ({_one_line(ex)})"
     return f"{ch.describe() if ch else 'none (the forced variant failed)'} ({'; '.join(notes)})"

@@ -90,9 +90,8 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
            os.environ.get("ENDOWAVE_PROBE_PLANT"))
     ch = _CHOICES.get(key)
     if ch is None:
-        ch, notes = explain_choice(rt, C)
-        failed = [n for n in notes if " ok" not in n]
-        if failed and ch is None:
+        ch, notes, failed = explain_choice(rt, C)
+        if ch is None:
             raise RasterVariantError(
                 f"forced rasterizer variant on {rt.name} failed its probe ({'; '.join(failed)}); "
                 f"unset {ENV_VARIANT} / {ENV_VEC_WIDTH} to let endowave-cl fall back")
@@ -106,30 +105,36 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
 
 
 def explain_choice(rt, C: int = 6):
-    """(choice, notes): what raster_choice picks (None: a forced variant failed its probe) and one
-    note per variant considered ("16 lanes ok (2.1 s probe)", "16 lanes: <what went wrong>",
-    "forced", "GPU", "simulator, not probed")."""
+    """(choice, notes, failed): what raster_choice picks (None: a forced variant failed its probe),
+    one note per variant considered ("16 lanes ok (2.1 s probe)", "GPU", "simulator, not probed",
+    ...) and the notes of those that failed ("16 lanes: <what went wrong>")."""
     forced_v, forced_w, _ = _forced()
     if forced_v == "scalar":
-        return RasterChoice("scalar"), [f"forced by {ENV_VARIANT}"]
+        return RasterChoice("scalar"), [f"forced by {ENV_VARIANT}"], []
     if forced_v is None and forced_w is None and rt.is_gpu:
-        return RasterChoice("scalar"), ["GPU"]
+        return RasterChoice("scalar"), ["GPU"], []
+    forced = bool(forced_v or forced_w)
     widths = (forced_w,) if forced_w else (VEC_WIDTH,) + tuple(w for w in VEC_WIDTHS if w < VEC_WIDTH)
-    if rt.is_oclgrind:   # a simulator: its builds cannot take the process down
-        return RasterChoice("vector", widths[0], vec_block(widths[0])[0]), ["simulator, not probed"]
-    from ..probe import verdict
-    notes = []
+    notes, failed = [], []
     for w in widths:
         bw = vec_block(w)[0]
-        if fwd_vec_local_bytes(C, w, bw) > rt.local_mem_size:
-            # nothing to probe: rasterize reports that it does not fit
-            return RasterChoice("vector", w, bw), notes + [f"{w} lanes ok (not probed: local memory)"]
+        need = max(fwd_vec_local_bytes(C, w, bw), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], w))
+        if need > rt.local_mem_size:
+            if forced:   # nothing to probe: rasterize says that it does not fit
+                return RasterChoice("vector", w, bw), notes + [f"{w} lanes (too big for local memory)"], failed
+            failed.append(f"{w} lanes: needs {need} bytes of local memory, the device has {rt.local_mem_size}")
+            notes.append(failed[-1])
+            continue
+        if rt.is_oclgrind:   # a simulator: its builds cannot take the process down
+            return RasterChoice("vector", w, bw), notes + [f"{w} lanes (simulator, not probed)"], failed
+        from ..probe import verdict
         v = verdict(rt, C, w, bw)
         if v.ok:
             how = "cached verdict" if v.cached else f"{v.seconds:.1f} s probe"
-            return RasterChoice("vector", w, bw), notes + [f"{w} lanes ok ({how})"]
-        notes.append(f"{w} lanes: {v.reason}")
-    return (None if (forced_v or forced_w) else RasterChoice("scalar")), notes
+            return RasterChoice("vector", w, bw), notes + [f"{w} lanes ok ({how})"], failed
+        failed.append(f"{w} lanes: {v.reason}")
+        notes.append(failed[-1])
+    return (None if forced else RasterChoice("scalar")), notes, failed
 
 
 def raster_variant(rt, C: int = 6) -> str:
