@@ -17,7 +17,8 @@ import numpy as np
 
 from ..errors import EndowaveError
 from ..reference.rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP
-from ..runtime import round_up
+from ..probe import ENV_PLANT
+from ..runtime import ENV_CACHE_DIR, round_up
 
 TILE = 16
 
@@ -86,8 +87,7 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
     forced_v, forced_w, forced_bw = _forced()
-    key = (id(rt), int(C), forced_v, forced_w, forced_bw, os.environ.get("ENDOWAVE_CL_CACHE"),
-           os.environ.get("ENDOWAVE_PROBE_PLANT"))
+    key = (id(rt), int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR), os.environ.get(ENV_PLANT))
     ch = _CHOICES.get(key)
     if ch is None:
         ch, notes, failed = explain_choice(rt, C)
@@ -117,7 +117,14 @@ def explain_choice(rt, C: int = 6):
     widths = (forced_w,) if forced_w else (VEC_WIDTH,) + tuple(w for w in VEC_WIDTHS if w < VEC_WIDTH)
     notes, failed = [], []
     for w in widths:
-        bw = vec_block(w)[0]
+        try:
+            bw = vec_block(w)[0]
+        except ValueError as e:   # $ENDOWAVE_RASTER_BW does not suit this lane count
+            if forced:
+                raise
+            failed.append(f"{w} lanes: {e}")
+            notes.append(failed[-1])
+            continue
         need = max(fwd_vec_local_bytes(C, w, bw), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], w))
         if need > rt.local_mem_size:
             if forced:   # nothing to probe: rasterize says that it does not fit
