@@ -152,7 +152,8 @@ def _tiny_scene(C: int, seed: int = 7):
     """24 random screen-space Gaussians over a 36 x 20 image (3 x 2 tiles, partial ones included),
     with their depth-sorted tile lists (numpy binning reference)."""
     import numpy as np
-    from .reference.binning import bin_gaussians_ref, sort_pairs_ref, tile_grid, tile_ranges_ref
+    from .reference.binning import (bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid,
+                                    tile_ranges_ref)
     rng = np.random.default_rng(seed)
     n, w, h = 24, 36, 20
     means = np.stack([rng.uniform(-2, w + 2, n), rng.uniform(-2, h + 2, n)], 1)
@@ -168,6 +169,9 @@ def _tiny_scene(C: int, seed: int = 7):
     rect = np.stack([np.floor((means[:, 0] - radius) / 16), np.floor((means[:, 1] - radius) / 16),
                      np.ceil((means[:, 0] + radius) / 16), np.ceil((means[:, 1] + radius) / 16)], 1)
     rect = np.clip(rect, 0, [tx, ty, tx, ty]).astype(np.int32)
+    empty = (rect[:, 2] <= rect[:, 0]) | (rect[:, 3] <= rect[:, 1])   # off screen: culled, as binning does
+    radius[empty] = 0
+    rect[empty] = 0
     depth = rng.uniform(0.5, 5.0, n).astype(np.float32)
     keys, vals = bin_gaussians_ref(rect, depth, radius, tx)
     skeys, svals = sort_pairs_ref(keys, vals)
@@ -177,7 +181,6 @@ def _tiny_scene(C: int, seed: int = 7):
                   sorted_values=svals.astype(np.int32), tile_ranges=tile_ranges_ref(skeys, tx * ty))
     v_out = rng.standard_normal((h, w, C)).astype(np.float32)
     v_alpha = rng.standard_normal((h, w)).astype(np.float32)
-    from .reference.binning import bin_offsets_ref
     return arrays, w, h, v_out, v_alpha, rect, bin_offsets_ref(rect, radius)
 
 
