@@ -95,12 +95,12 @@ __kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
 inline intV lane_dx(void) {
     int v[VW];
     for (int l = 0; l < VW; l++) v[l] = l % BW;
-    return vloadV(0, v);
+    return vloadI(0, v);
 }
 inline intV lane_dy(void) {
     int v[VW];
     for (int l = 0; l < VW; l++) v[l] = l / BW;
-    return vloadV(0, v);
+    return vloadI(0, v);
 }
 
 #ifndef RASTERIZE_VEC_HELPERS_ONLY
@@ -231,10 +231,10 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
     /* lanes to pixels */
     float T_l[VW], acc_l[VW * C];
     int last_l[VW], in_l[VW];
-    vstoreV(T, 0, T_l);
-    for (int c = 0; c < C; c++) vstoreV(acc[c], c, acc_l);
-    vstoreV(last, 0, last_l);
-    vstoreV(inside, 0, in_l);
+    vstoreF(T, 0, T_l);
+    for (int c = 0; c < C; c++) vstoreF(acc[c], c, acc_l);
+    vstoreI(last, 0, last_l);
+    vstoreI(inside, 0, in_l);
     for (int l = 0; l < VW; l++) {
         if (in_l[l]) {
             const int p = (iy0 + l / BW) * width + ix0 + l % BW;

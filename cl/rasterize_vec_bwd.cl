@@ -91,11 +91,11 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     }
     const floatV px = (floatV)(px0) + convert_floatV(lane_dx());
     const floatV py = (floatV)(py0) + convert_floatV(lane_dy());
-    const floatV T_fin = vloadV(0, tf_l);
-    const intV last = vloadV(0, last_l);
-    const floatV va_tf = vloadV(0, va_l) * T_fin;    /* v_alpha T_final */
+    const floatV T_fin = vloadF(0, tf_l);
+    const intV last = vloadI(0, last_l);
+    const floatV va_tf = vloadF(0, va_l) * T_fin;    /* v_alpha T_final */
     floatV vo[C], S[C];
-    for (int c = 0; c < C; c++) { vo[c] = vloadV(c, vo_l); S[c] = (floatV)(0.0f); }
+    for (int c = 0; c < C; c++) { vo[c] = vloadF(c, vo_l); S[c] = (floatV)(0.0f); }
     floatV T = T_fin;
 
     const int2 range = tile_ranges[tile];

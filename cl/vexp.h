@@ -11,17 +11,39 @@
 #define VW 8
 #endif
 
-/* floatVW, intVW, vloadVW, vstoreVW, convert_intVW */
+/* floatVW, intVW and their converts, loads and stores */
 #define VCAT_(a, b) a##b
 #define VCAT(a, b) VCAT_(a, b)
 #define floatV VCAT(float, VW)
 #define intV VCAT(int, VW)
-#define vloadV VCAT(vload, VW)
-#define vstoreV VCAT(vstore, VW)
-#define convert_intV VCAT(convert_int, VW)
-#define convert_floatV VCAT(convert_float, VW)
 #define as_floatV VCAT(as_float, VW)
 #define as_intV VCAT(as_int, VW)
+
+/* Converts, loads and stores of whole vectors (loads and stores on private arrays).  At 16 lanes
+ * each is done on two 8-lane halves joined by a vector literal: PoCL 3.0 (LLVM 14) on AVX-512 CPUs
+ * aborts while generating code for convert_float16 from int16, convert_int16 from float16 and
+ * vstore16, and computes wrong lanes for vload16 (docs/PORTABILITY.md).  Same values lane for lane. */
+#if VW == 16
+inline int16 vcvt_int16(float16 x) { return (int16)(convert_int8(x.lo), convert_int8(x.hi)); }
+inline float16 vcvt_float16(int16 k) { return (float16)(convert_float8(k.lo), convert_float8(k.hi)); }
+inline float16 vload_f16(int i, const float *p) { return (float16)(vload8(2 * i, p), vload8(2 * i + 1, p)); }
+inline int16 vload_i16(int i, const int *p) { return (int16)(vload8(2 * i, p), vload8(2 * i + 1, p)); }
+inline void vstore_f16(float16 v, int i, float *p) { vstore8(v.lo, 2 * i, p); vstore8(v.hi, 2 * i + 1, p); }
+inline void vstore_i16(int16 v, int i, int *p) { vstore8(v.lo, 2 * i, p); vstore8(v.hi, 2 * i + 1, p); }
+#define convert_intV vcvt_int16
+#define convert_floatV vcvt_float16
+#define vloadF vload_f16
+#define vloadI vload_i16
+#define vstoreF vstore_f16
+#define vstoreI vstore_i16
+#else
+#define convert_intV VCAT(convert_int, VW)
+#define convert_floatV VCAT(convert_float, VW)
+#define vloadF VCAT(vload, VW)      /* floatV from a private float array */
+#define vloadI VCAT(vload, VW)      /* intV from a private int array */
+#define vstoreF VCAT(vstore, VW)
+#define vstoreI VCAT(vstore, VW)
+#endif
 
 /* Lane masks are intV with -1 (true) or 0 per lane, as vector comparisons give.  all / any / select
  * are written out (bitwise halving, vector ?:) because PoCL calls the builtins out of line. */

@@ -19,6 +19,7 @@ a ``platform:device`` index pair (``"0:0"``), or a case-insensitive substring of
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import threading
@@ -182,6 +183,44 @@ def _source_with_includes_hash(path: Path, h, seen=None) -> None:
             _source_with_includes_hash(p, h, seen)
 
 
+_CACHE_MAGIC = b"endowave-cl program\n"
+
+
+def _kernel_names(prg) -> List[str]:
+    cl = _cl()
+    names = prg.get_info(cl.program_info.KERNEL_NAMES) or ""
+    return [n for n in names.split(";") if n]
+
+
+def _write_cache_entry(cache_file: Path, key: str, binary: bytes, kernels: Sequence[str]) -> None:
+    """A disk-cache entry: magic line, a JSON header line (cache key, size and sha256 of the
+    binary, kernel names), the driver's binary.  Written to a temporary file and renamed."""
+    header = json.dumps({"key": key, "size": len(binary), "sha256": hashlib.sha256(binary).hexdigest(),
+                         "kernels": list(kernels)}).encode()
+    cache_file.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache_file.with_suffix(f".tmp{os.getpid()}")
+    tmp.write_bytes(_CACHE_MAGIC + header + b"\n" + binary)
+    os.replace(tmp, cache_file)
+
+
+def _read_cache_entry(cache_file: Path, key: str) -> Tuple[bytes, List[str]]:
+    """(binary, kernel names) of an entry written by _write_cache_entry for ``key``; ValueError
+    saying what is wrong otherwise (foreign, truncated or altered file)."""
+    data = cache_file.read_bytes()
+    if not data.startswith(_CACHE_MAGIC):
+        raise ValueError("no endowave-cl header")
+    nl = data.find(b"\n", len(_CACHE_MAGIC))
+    if nl < 0:
+        raise ValueError("truncated header")
+    header = json.loads(data[len(_CACHE_MAGIC):nl])
+    binary = data[nl + 1:]
+    if header.get("key") != key:
+        raise ValueError("written for another build")
+    if header.get("size") != len(binary) or header.get("sha256") != hashlib.sha256(binary).hexdigest():
+        raise ValueError("binary does not match its checksum")
+    return binary, list(header.get("kernels") or [])
+
+
 class Runtime:
     """A context + queue on one device, and a cache of built programs."""
 
@@ -246,11 +285,18 @@ class Runtime:
         h.update("\0".join([*options, d.name, d.platform.name, d.version, d.driver_version]).encode())
         return h.hexdigest()[:32]
 
+    def cache_file(self, filename: str, options: Sequence[str] = ()) -> Path:
+        """The disk-cache file of cl/<filename> built with ``options`` on this device."""
+        path = self.kdir / filename
+        return _default_cache_dir() / f"{path.stem}-{self._cache_key(path, tuple(str(o) for o in options))}.bin"
+
     def program(self, filename: str, options: Sequence[str] = (), source: Optional[str] = None):
         """Build (or fetch from cache) the program in cl/<filename>.
 
         ``source`` overrides the file's text (used by tests that plant faults); it is
-        then cached in memory only.
+        then cached in memory only.  A disk-cache entry is used only when its header names this
+        build (the cache key), its checksum matches and the loaded program has the kernels the
+        header lists; anything else is rebuilt from source and rewritten.
         """
         cl = self.cl
         path = self.kdir / filename
@@ -269,15 +315,12 @@ class Runtime:
                 text = source
             full_opts = self._options(opts)
             prg = None
-            cache_file = None
+            cache_file = key = None
             if self.disk_cache and source is None:
-                cache_file = _default_cache_dir() / f"{path.stem}-{self._cache_key(path, opts)}.bin"
+                key = self._cache_key(path, opts)
+                cache_file = _default_cache_dir() / f"{path.stem}-{key}.bin"
                 if cache_file.is_file():
-                    try:
-                        prg = cl.Program(self.ctx, [self.device], [cache_file.read_bytes()])
-                        prg.build(options=full_opts)
-                    except Exception:
-                        prg = None  # stale or foreign binary: rebuild from source
+                    prg = self._load_cached(cache_file, key, full_opts)
             if prg is None:
                 prg = cl.Program(self.ctx, text)
                 try:
@@ -296,21 +339,43 @@ class Runtime:
                     try:
                         binary = prg.get_info(cl.program_info.BINARIES)[0]
                         if binary:
-                            cache_file.parent.mkdir(parents=True, exist_ok=True)
-                            tmp = cache_file.with_suffix(f".tmp{os.getpid()}")
-                            tmp.write_bytes(binary)
-                            os.replace(tmp, cache_file)
+                            _write_cache_entry(cache_file, key, bytes(binary), _kernel_names(prg))
                     except Exception:
                         pass  # the cache is an optimisation only
             self._programs[mem_key] = prg
             return prg
+
+    def _load_cached(self, cache_file: Path, key: str, full_opts: List[str]):
+        """The program in a disk-cache entry, or None (entry removed) when it is not one we wrote
+        for this build or does not load."""
+        cl = self.cl
+        try:
+            binary, kernels = _read_cache_entry(cache_file, key)
+            prg = cl.Program(self.ctx, [self.device], [binary])
+            prg.build(options=full_opts)
+            missing = set(kernels) - set(_kernel_names(prg))
+            if missing:
+                raise ValueError(f"kernels {sorted(missing)} missing after loading")
+            return prg
+        except Exception:
+            try:
+                cache_file.unlink()
+            except OSError:
+                pass
+            return None
 
     def kernel(self, filename: str, name: str, options: Sequence[str] = ()):
         """A kernel object from cl/<filename>; cached, so set its args right before enqueueing."""
         key = (filename, name, " ".join(str(o) for o in options))
         k = self._kernels.get(key)
         if k is None:
-            k = getattr(self.program(filename, options), name)
+            prg = self.program(filename, options)
+            if name not in _kernel_names(prg):
+                raise KernelBuildError(
+                    f"kernel {name} is missing from {self.kdir / filename} as built by {self.name} "
+                    f"(kernels: {', '.join(_kernel_names(prg)) or 'none'}); a stale driver cache can do "
+                    f"this: clear {_default_cache_dir()} and the driver's cache (PoCL: ~/.cache/pocl)")
+            k = getattr(prg, name)
             self._kernels[key] = k
         return k
 

@@ -78,6 +78,67 @@ def test_program_cache_memory_and_disk(rt, tmp_path, monkeypatch):
     assert len(list(tmp_path.glob("util-*.bin"))) == 2
 
 
+def _fill_works(r, prg):
+    import pyopencl as cl
+    x = np.zeros(10, np.float32)
+    buf = cl.Buffer(r.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=x)
+    prg.fill_f32(r.queue, (16,), None, buf, np.float32(3.0), np.int32(10))
+    cl.enqueue_copy(r.queue, x, buf)
+    return bool(np.all(x == 3.0))
+
+
+def _corrupt_truncate(data):
+    return data[: len(data) // 2]
+
+
+def _corrupt_flip(data):
+    b = bytearray(data)
+    b[len(b) * 3 // 4] ^= 0xFF
+    return bytes(b)
+
+
+def _corrupt_foreign(data):
+    return b"\x7fELF" + data[4:]   # a bare driver binary or anything else without our header
+
+
+def _corrupt_other_key(data):
+    return data.replace(b'"key": "', b'"key": "0', 1)
+
+
+def _corrupt_kernel_list(data):
+    # header names a kernel the binary lacks (as a partial driver cache entry would give),
+    # checksum and key intact
+    return data.replace(b'"kernels": [', b'"kernels": ["no_such_kernel", ', 1)
+
+
+@pytest.mark.parametrize("corrupt", [_corrupt_truncate, _corrupt_flip, _corrupt_foreign, _corrupt_other_key,
+                                     _corrupt_kernel_list])
+def test_corrupt_disk_cache_entry_is_rebuilt(rt, tmp_path, monkeypatch, corrupt):
+    if rt.is_oclgrind:
+        pytest.skip("no binary cache for the simulator")
+    monkeypatch.setenv(R.ENV_CACHE_DIR, str(tmp_path))
+    R.Runtime(rt.entry, disk_cache=True).program("util.cl", ["-DTEST_OPTION=3"])
+    (f,) = tmp_path.glob("util-*.bin")
+    good = f.read_bytes()
+    assert good.startswith(R._CACHE_MAGIC) and b"fill_f32" in good.split(b"\n", 2)[1]
+    bad = corrupt(good)
+    assert bad != good
+    f.write_bytes(bad)
+    r = R.Runtime(rt.entry, disk_cache=True)
+    prg = r.program("util.cl", ["-DTEST_OPTION=3"])
+    assert _fill_works(r, prg)
+    assert "no_such_kernel" not in R._kernel_names(prg)
+    binary, kernels = R._read_cache_entry(f, r._cache_key(r.kdir / "util.cl", ("-DTEST_OPTION=3",)))
+    assert "fill_f32" in kernels and f.read_bytes() != bad      # rewritten as a valid entry
+
+
+def test_missing_kernel_is_a_one_line_error(rt):
+    r = R.Runtime(rt.entry, disk_cache=False)
+    with pytest.raises(R.KernelBuildError, match="kernel no_such_kernel is missing from .*util.cl") as ei:
+        r.kernel("util.cl", "no_such_kernel")
+    assert "\n" not in str(ei.value)
+
+
 @pytest.mark.oclgrind
 @pytest.mark.parametrize("n", [0, 1, 1000, 4097])
 def test_atomic_add_float(rt, n):

@@ -7,6 +7,22 @@ def add_arguments(p) -> None:
                    help="also build a small kernel on the chosen device to check the toolchain")
 
 
+def _rasterizer(entry) -> str:
+    """The rasterizer variant this device runs for the renderer's 6 channels, and why (the probe
+    verdicts of the lane counts tried; a first call probes them in child processes)."""
+    from ..ops.rasterize import explain_choice
+    from ..runtime import Runtime
+    try:
+        ch, notes, _ = explain_choice(Runtime(entry, disk_cache=True), 6)
+    except Exception as ex:   # a device that cannot even make a context
+        return f"unavailable ({_one_line(ex)})"
+    return f"{ch.describe() if ch else 'none (the forced variant failed)'} ({'; '.join(notes)})"
+
+
+def _one_line(ex) -> str:
+    return (str(ex).strip().splitlines() or [type(ex).__name__])[0]
+
+
 def run(args) -> int:
     import pyopencl as cl
 
@@ -21,6 +37,7 @@ def run(args) -> int:
                               ("accelerator", cl.device_type.ACCELERATOR)) if d.type & bit), "other")
         print(f"{mark} [{e.index}] {e.platform_index}:{e.device_index}  {e.label}  "
               f"({kind}, {d.max_compute_units} CU, {d.global_mem_size // 2**20} MiB, {d.version.strip()})")
+        print(f"      driver {d.driver_version.strip()}; rasterizer: {_rasterizer(e)}")
     print(f"\nchosen: [{chosen.index}] {chosen.label}")
     if args.build_test:
         rt = Runtime(chosen)

@@ -20,9 +20,9 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     import cv2
-    from tqdm import tqdm
 
     from ..gaussians import upload
+    from ..progress import progress as progress_bar
     from ..render import render
     from ..run_io import load_run, write_png_atomic
     from ..runtime import get_runtime
@@ -42,7 +42,7 @@ def run(args) -> int:
     frames = r.scene.frames
     idx = range(len(frames)) if args.all else r.scene.test_indices
     video_frames = []
-    for k in tqdm(range(len(frames)), desc="render", unit="frame"):
+    for k in progress_bar(range(len(frames)), desc="render", unit="frame"):
         f = frames[k]
         if k not in idx and args.no_video:
             continue

@@ -273,11 +273,11 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
             result.method, result.cache_path, result.computed = method, entry, False
             return result
 
-    from tqdm import tqdm
+    from ..progress import progress as progress_bar
     estimator = _make_estimator(method)
     grey = {i: to_grey8(scene.frames[i].image) for i in sorted({i for p in pairs for i in p})}
     result = SceneFlow()
-    for k, k2 in tqdm(pairs, desc=f"flow ({method})", unit="pair", disable=not progress):
+    for k, k2 in progress_bar(pairs, desc=f"flow ({method})", unit="pair", disable=not progress):
         fw = np.asarray(_estimate(estimator, grey[k], grey[k2]), np.float32)
         bw = np.asarray(_estimate(estimator, grey[k2], grey[k]), np.float32)
         m0, m1 = scene.frames[k].mask, scene.frames[k2].mask

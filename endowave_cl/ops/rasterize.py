@@ -8,14 +8,17 @@ kernels as build options so both sides use the same values.
 from __future__ import annotations
 
 import os
+import sys
 import weakref
 from dataclasses import dataclass
 from typing import Dict
 
 import numpy as np
 
+from ..errors import EndowaveError
 from ..reference.rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP
-from ..runtime import round_up
+from ..probe import ENV_PLANT
+from ..runtime import ENV_CACHE_DIR, round_up
 
 TILE = 16
 
@@ -31,12 +34,15 @@ def _options(C: int):
 
 
 # Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl, rasterize_bwd.cl), the GPU
-# path.  "vector": each work-item composites a block of VEC_WIDTH pixels in floatN lanes
+# path.  "vector": each work-item composites a block of VW pixels in floatVW lanes
 # (cl/rasterize_vec.cl, cl/rasterize_vec_bwd.cl): CPU drivers such as PoCL do not vectorise the
 # scalar kernel's per-pixel loop.  Same rules and results (to float rounding; `last` equal in the tests).
+# On a CPU device the first use of a lane count is probed in a child process (endowave_cl/probe.py):
+# VEC_WIDTHS are tried in order and the first that builds and matches the scalar kernel runs.
 ENV_VARIANT = "ENDOWAVE_RASTER_VARIANT"     # scalar | vector: force a variant (tests, benchmarks)
-ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # lanes of the vector variant: 4, 8 or 16
+ENV_VEC_WIDTH = "ENDOWAVE_RASTER_VW"        # force the lanes of the vector variant: 4, 8 or 16
 VEC_WIDTH = 16                              # default lanes (fastest measured: PoCL, 2-core AVX2 x86)
+VEC_WIDTHS = (16, 8, 4)                     # lane counts tried on a CPU device, fastest first
 ENV_VEC_BLOCK_W = "ENDOWAVE_RASTER_BW"      # width of a work-item's pixel block (divides the lanes)
 VEC_BLOCK_W = 4                             # default: 4 x 4 pixel blocks for 16 lanes (squarest: fewest
                                             # Gaussian-block pairs walked)
@@ -44,27 +50,113 @@ VEC_BLOCK_ROWS = 4                          # rows of blocks sharing a culling l
 VARIANTS = ("scalar", "vector")
 
 
-def raster_variant(rt) -> str:
-    """The rasterizer variant for this runtime: $ENDOWAVE_RASTER_VARIANT if set, else "vector" on CPU
-    devices (not rt.is_gpu, Oclgrind included) and "scalar" on GPUs."""
+class RasterVariantError(EndowaveError):
+    """A forced rasterizer variant failed its probe on this device."""
+
+
+@dataclass(frozen=True)
+class RasterChoice:
+    """The rasterizer variant a call runs: "scalar", or "vector" with vw lanes in bw-wide blocks."""
+    variant: str
+    vw: int = 0
+    bw: int = 0
+
+    def describe(self) -> str:
+        return "scalar kernel" if self.variant == "scalar" else f"vector kernel, {self.vw} lanes"
+
+
+_CHOICES: Dict[tuple, RasterChoice] = {}
+
+
+def _forced():
     v = os.environ.get(ENV_VARIANT, "").strip().lower()
-    if v:
-        if v not in VARIANTS:
-            raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
-        return v
-    return "scalar" if rt.is_gpu else "vector"
+    if v and v not in VARIANTS:
+        raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
+    w = os.environ.get(ENV_VEC_WIDTH, "").strip()
+    if w and int(w) not in (2, 4, 8, 16):
+        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected 2, 4, 8 or 16")
+    return v or None, int(w) if w else None, os.environ.get(ENV_VEC_BLOCK_W, "").strip() or None
+
+
+def raster_choice(rt, C: int = 6) -> RasterChoice:
+    """The variant that runs on rt for C feature channels.
+
+    $ENDOWAVE_RASTER_VARIANT / $ENDOWAVE_RASTER_VW force a variant / lane count; else GPUs run the
+    scalar kernels and CPU devices the vector ones at the first of VEC_WIDTHS whose probe passes
+    (the Oclgrind simulator: VEC_WIDTH, not probed), then the scalar kernels.  A forced vector
+    variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
+    one line to stderr saying what runs and why."""
+    forced_v, forced_w, forced_bw = _forced()
+    key = (id(rt), int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR), os.environ.get(ENV_PLANT))
+    ch = _CHOICES.get(key)
+    if ch is None:
+        ch, notes, failed = explain_choice(rt, C)
+        if ch is None:
+            raise RasterVariantError(
+                f"forced rasterizer variant on {rt.name} failed its probe ({'; '.join(failed)}); "
+                f"unset {ENV_VARIANT} / {ENV_VEC_WIDTH} to let endowave-cl fall back")
+        if failed:
+            from ..probe import probe_dir
+            print(f"endowave-cl: {rt.name}: rasterizer runs the {ch.describe()} ({'; '.join(failed)}); "
+                  f"verdicts in {probe_dir()}, {ENV_VEC_WIDTH} / {ENV_VARIANT} force one",
+                  file=sys.stderr, flush=True)
+        _CHOICES[key] = ch
+    return ch
+
+
+def explain_choice(rt, C: int = 6):
+    """(choice, notes, failed): what raster_choice picks (None: a forced variant failed its probe),
+    one note per variant considered ("16 lanes ok (2.1 s probe)", "GPU", "simulator, not probed",
+    ...) and the notes of those that failed ("16 lanes: <what went wrong>")."""
+    forced_v, forced_w, _ = _forced()
+    if forced_v == "scalar":
+        return RasterChoice("scalar"), [f"forced by {ENV_VARIANT}"], []
+    if forced_v is None and forced_w is None and rt.is_gpu:
+        return RasterChoice("scalar"), ["GPU"], []
+    forced = bool(forced_v or forced_w)
+    widths = (forced_w,) if forced_w else (VEC_WIDTH,) + tuple(w for w in VEC_WIDTHS if w < VEC_WIDTH)
+    notes, failed = [], []
+    for w in widths:
+        try:
+            bw = vec_block(w)[0]
+        except ValueError as e:   # $ENDOWAVE_RASTER_BW does not suit this lane count
+            if forced:
+                raise
+            failed.append(f"{w} lanes: {e}")
+            notes.append(failed[-1])
+            continue
+        need = max(fwd_vec_local_bytes(C, w, bw), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], w))
+        if need > rt.local_mem_size:
+            if forced:   # nothing to probe: rasterize says that it does not fit
+                return RasterChoice("vector", w, bw), notes + [f"{w} lanes (too big for local memory)"], failed
+            failed.append(f"{w} lanes: needs {need} bytes of local memory, the device has {rt.local_mem_size}")
+            notes.append(failed[-1])
+            continue
+        if rt.is_oclgrind:   # a simulator: its builds cannot take the process down
+            return RasterChoice("vector", w, bw), notes + [f"{w} lanes (simulator, not probed)"], failed
+        from ..probe import verdict
+        v = verdict(rt, C, w, bw)
+        if v.ok:
+            how = "cached verdict" if v.cached else f"{v.seconds:.1f} s probe"
+            return RasterChoice("vector", w, bw), notes + [f"{w} lanes ok ({how})"], failed
+        failed.append(f"{w} lanes: {v.reason}")
+        notes.append(failed[-1])
+    return (None if forced else RasterChoice("scalar")), notes, failed
+
+
+def raster_variant(rt, C: int = 6) -> str:
+    """"scalar" or "vector": the variant raster_choice picks for rt."""
+    return raster_choice(rt, C).variant
 
 
 def vec_width() -> int:
-    w = int(os.environ.get(ENV_VEC_WIDTH, "") or VEC_WIDTH)
-    if w not in (2, 4, 8, 16):
-        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected 2, 4, 8 or 16")
-    return w
+    """The forced lane count ($ENDOWAVE_RASTER_VW), else VEC_WIDTH."""
+    return _forced()[1] or VEC_WIDTH
 
 
-def vec_block() -> tuple:
-    """(BW, BH): a work-item's pixel block in the vector variant, BW * BH = vec_width()."""
-    vw = vec_width()
+def vec_block(vw: int = None) -> tuple:
+    """(BW, BH): a work-item's pixel block in the vector variant with vw lanes, BW * BH = vw."""
+    vw = vw or vec_width()
     bw = int(os.environ.get(ENV_VEC_BLOCK_W, "") or min(VEC_BLOCK_W, vw))
     if vw % bw or bw > TILE:
         raise ValueError(f"{ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
@@ -74,9 +166,9 @@ def vec_block() -> tuple:
     return bw, bh
 
 
-def _vec_grid(width: int, height: int):
+def _vec_grid(width: int, height: int, ch: RasterChoice):
     """Global and local sizes of the vector kernels: (TILE / BW) x (TILE / BH) work-items per tile."""
-    bw, bh = vec_block()
+    bw, bh = ch.bw, ch.vw // ch.bw
     tiles_x, tiles_y, _, _ = _grid(width, height)
     lsize = (TILE // bw, TILE // bh)
     return (tiles_x * lsize[0], tiles_y * lsize[1]), lsize
@@ -91,9 +183,9 @@ def fwd_local_bytes(C: int) -> int:
     return TILE * TILE * per_gaussian + 16 * 4 + 8
 
 
-def fwd_vec_local_bytes(C: int) -> int:
+def fwd_vec_local_bytes(C: int, vw: int, bw: int) -> int:
     """Local memory of the rasterize_vec kernel (mirror of its __local arrays)."""
-    bw, bh = vec_block()
+    bh = vw // bw
     n_blk = (TILE // bw) * (TILE // bh // VEC_BLOCK_ROWS)
     per_gaussian = 8 + 16 + 4 * C + 4 + 16 + n_blk   # mean, cop, feat, thr, box, list slots
     return TILE * TILE * per_gaussian + 4 * n_blk + 8
@@ -102,17 +194,17 @@ def fwd_vec_local_bytes(C: int) -> int:
 VEC_BWD_BATCHES = (32, 16, 8)   # Gaussians per batch of rasterize_vec_bwd.cl, largest that fits first
 
 
-def vec_bwd_local_bytes(C: int, batch: int) -> int:
+def vec_bwd_local_bytes(C: int, batch: int, vw: int) -> int:
     """Local memory of the rasterize_vec_bwd kernel (mirror of its __local arrays)."""
-    n_wi = (TILE // vec_width()) * TILE
+    n_wi = (TILE // vw) * TILE
     nsv = (6 + C + 3) // 4                                           # float4 per slot (NSV)
     per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 4 + 16 + 16 * nsv * n_wi  # mean, cop, feat, gid, slot, thr, box, part
     return batch * per_gaussian + 4 * n_wi + 4                         # + wrote masks, max_last
 
 
-def vec_bwd_batch(rt, C: int) -> int:
+def vec_bwd_batch(rt, C: int, vw: int) -> int:
     for batch in VEC_BWD_BATCHES:
-        if vec_bwd_local_bytes(C, batch) <= rt.local_mem_size:
+        if vec_bwd_local_bytes(C, batch, vw) <= rt.local_mem_size:
             return batch
     return VEC_BWD_BATCHES[-1]   # too big: _check_local reports it
 
@@ -171,11 +263,12 @@ def _check(means2d, conic, opac, features, tile_ranges, width, height):
 
 
 def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
-              height: int) -> RasterOut:
+              height: int, choice: RasterChoice = None) -> RasterOut:
     """Composite the sorted Gaussians front to back over a width x height image.
 
     means2d [N,2], conic [N,3], opac [N], features [N,C] float32; sorted_values [M] int32 (Gaussian
     ids, tile-major then depth); tile_ranges [n_tiles, 2] int32.  All pyopencl arrays.
+    choice: the variant to run (default raster_choice(rt, C); the probe passes its own).
     """
     import pyopencl.array as cla
     width, height = int(width), int(height)
@@ -187,12 +280,13 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     if width == 0 or height == 0:
         return res
     tiles_x, _, gsize, lsize = _grid(width, height)
-    if raster_variant(rt) == "vector":
-        _check_local(rt, fwd_vec_local_bytes(C), "rasterize", C)
-        opts = _vec_options(C)
+    ch = choice or raster_choice(rt, C)
+    if ch.variant == "vector":
+        _check_local(rt, fwd_vec_local_bytes(C, ch.vw, ch.bw), "rasterize", C)
+        opts = vec_options(C, ch)
         rec = _vec_records(rt, means2d, conic, opac, features, opts)
         k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
-        gsize, lsize = _vec_grid(width, height)
+        gsize, lsize = _vec_grid(width, height, ch)
         k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
           np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
         res.rec = rec
@@ -205,8 +299,14 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     return res
 
 
-def _vec_options(C: int):
-    return _options(C) + [f"-DVW={vec_width()}", f"-DBW={vec_block()[0]}", f"-DBROWS={VEC_BLOCK_ROWS}"]
+def vec_options(C: int, ch: RasterChoice):
+    """Build options of rasterize_vec.cl for C channels and the variant ch."""
+    return _options(C) + [f"-DVW={ch.vw}", f"-DBW={ch.bw}", f"-DBROWS={VEC_BLOCK_ROWS}"]
+
+
+def vec_bwd_options(rt, C: int, ch: RasterChoice, det: bool):
+    """Build options of rasterize_vec_bwd.cl."""
+    return vec_options(C, ch) + [f"-DDETERMINISTIC={int(det)}", f"-DBATCH={vec_bwd_batch(rt, C, ch.vw)}"]
 
 
 def _vec_records(rt, means2d, conic, opac, features, opts):
@@ -226,8 +326,8 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
 
 
 def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges, width: int,
-                  height: int, raster_out: RasterOut, v_out, v_alpha, deterministic=None
-                  ) -> Dict[str, "object"]:
+                  height: int, raster_out: RasterOut, v_out, v_alpha, deterministic=None,
+                  choice: RasterChoice = None) -> Dict[str, "object"]:
     """Adjoint of ``rasterize``: from v_out [H,W,C] and v_alpha [H,W] to
     dict(v_means2d [N,2], v_conic [N,3], v_opac [N], v_features [N,C]) (new pyopencl arrays).
 
@@ -236,6 +336,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     from (ops.binning.bin_gaussians): then the gradients are bit-identical from run to run
     (per-entry terms stored at the entries' binning slots, summed per Gaussian in tile order;
     needs M * (6 + C) floats of scratch).
+    choice: the variant to run, as in ``rasterize``.
     """
     import pyopencl.array as cla
     width, height = int(width), int(height)
@@ -258,15 +359,15 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     if det:
         assert rect.shape == (N, 4) and rect.dtype == np.int32, (rect.shape, rect.dtype)
         assert offsets.shape == (N + 1,) and offsets.dtype == np.int32, (offsets.shape, offsets.dtype)
-    if raster_variant(rt) == "vector":
-        batch = vec_bwd_batch(rt, C)
-        _check_local(rt, vec_bwd_local_bytes(C, batch), "rasterize_bwd", C)
+    ch = choice or raster_choice(rt, C)
+    if ch.variant == "vector":
+        batch = vec_bwd_batch(rt, C, ch.vw)
+        _check_local(rt, vec_bwd_local_bytes(C, batch, ch.vw), "rasterize_bwd", C)
         rec = raster_out.rec
         if rec is None or rec.shape[0] != N:
-            rec = _vec_records(rt, means2d, conic, opac, features, _vec_options(C))
-        k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd",
-                      _vec_options(C) + [f"-DDETERMINISTIC={int(det)}", f"-DBATCH={batch}"])
-        gsize, lsize = _vec_grid(width, height)
+            rec = _vec_records(rt, means2d, conic, opac, features, vec_options(C, ch))
+        k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd", vec_bwd_options(rt, C, ch, det))
+        gsize, lsize = _vec_grid(width, height, ch)
         k(q, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
           np.int32(width), np.int32(height), np.int32(tiles_x),
           raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,

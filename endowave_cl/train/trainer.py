@@ -231,10 +231,10 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
-        from tqdm import tqdm
+        from ..progress import progress as progress_bar
         c = self.cfg
         order = list(self.scene.train_indices)
-        bar = tqdm(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
+        bar = progress_bar(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
                    desc="train", unit="it")
         t_start = time.perf_counter()
         budget = self._start_budget()
