@@ -50,7 +50,7 @@ def test_defaults_validate_and_every_numeric_key_has_a_range():
     ("iterations", "0", "must be at least 1"),
     ("downscale", "inf", "must be finite"),
     ("downscale", "0.5", "must be at least 1"),
-    ("init_points", "0", "must be at least 1"),
+    ("init_points", "-1", "must be at least 0"),
     ("lambda_dssim", "1.5", "must be in [0, 1]"),
     ("opacity_reset_value", "0", "must be in (0, 1)"),
     ("sh_degree", "2", "must be 3"),

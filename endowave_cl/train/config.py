@@ -13,11 +13,14 @@ from typing import Any, Dict, Mapping, Optional
 from ..errors import EndowaveError
 
 
+INIT_POINTS_PER_PIXEL = 1.0   # initial Gaussians per pixel of one frame (init_points = 0)
+
+
 @dataclass
 class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
-    iterations: int = 3000          # demo default: a few minutes per 1000 steps on a GPU, usable
-                                    # on a CPU; 4DGS trains 30000 (pass iterations = 30000)
+    iterations: int = 6000          # about 15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
+                                    # 4DGS trains 30000 on a GPU.  --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
                                     # training on this device (train/budget.py); 0: `iterations`
     seed: int = 0
@@ -28,7 +31,8 @@ class TrainConfig:
     checkpoint_every: int = 1000
     # -- data -----------------------------------------------------------------------------------
     downscale: float = 1.0          # image downscale factor (2 = half size)
-    init_points: int = 30000        # Gaussians created by init_gaussians
+    init_points: int = 0            # Gaussians created by init_gaussians; 0: INIT_POINTS_PER_PIXEL per
+                                    # pixel of one frame, at most half of max_gaussians
     init_time_scale: float = 0.2    # initial temporal std (normalised time; 0: 2 training-frame
                                     # spacings). 0.2 keeps a Gaussian visible over ~half the sequence:
                                     # +0.5 dB over 2 spacings after 300 demo steps (24.7 vs 24.2 dB)
@@ -55,8 +59,8 @@ class TrainConfig:
     # -- adaptive density control (3DGS) ------------------------------------------------------------
     densify_from: int = 500
     densify_every: int = 100
-    densify_until: int = 2000           # 3DGS stops at half of training (15000 of 30000); the demo
-                                        # keeps the last third free of densification
+    densify_until: int = 2500           # 3DGS stops at half of training (15000 of 30000); here the
+                                        # last ~60% of the steps refine a fixed set
     densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
@@ -64,7 +68,7 @@ class TrainConfig:
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
-    opacity_reset_every: int = 3000
+    opacity_reset_every: int = 3000     # resets happen only while densifying (3DGS): none by default
     opacity_reset_value: float = 0.01
     # -- losses -----------------------------------------------------------------------------------
     lambda_rgb: float = 1.0
@@ -80,6 +84,12 @@ class TrainConfig:
     use_depth: bool = True
     use_flow: bool = True
     use_wavelet: bool = True
+
+    def initial_points(self, width: int, height: int) -> int:
+        """init_points, or when it is 0 the per-pixel default for width x height frames."""
+        if self.init_points > 0:
+            return int(self.init_points)
+        return max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
 
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
@@ -143,7 +153,7 @@ _UNIT = (0, 1, True, True)
 RANGES = {
     "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
-    "downscale": (1, None, True, False), "init_points": _AT_LEAST_1, "init_time_scale": _NON_NEGATIVE,
+    "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
     "max_gaussians": _AT_LEAST_1,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,

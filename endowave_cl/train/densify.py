@@ -11,13 +11,19 @@ Rules (3DGS defaults from TrainConfig):
   longest axis runs along its path through space-time.
 - Candidates whose spatial size is <= percent_dense x extent are CLONED (an identical
   copy is appended; the original stays).
-- Larger candidates are SPLIT into split_children children whose 4D centres are sampled from the
-  parent's own 4D Gaussian N(mu, R S S^T R^T) (so children get new times, not only new
-  positions); the children's conditional spatial covariance is the parent's / 1.6^2, their
-  velocity and temporal std are the parent's (train/motion.py), every other parameter is copied.
-  The lifetime is kept: the split is triggered by a screen-space (spatial) gradient, which says
-  nothing about temporal resolution, and shrinking the lifetime would make children vanish
-  between training frames.  The parent is removed.
+- Larger candidates are SPLIT into split_children children placed evenly along the major axis of
+  the parent's conditional spatial covariance, with that axis's std divided by
+  split_scale_divisor and the spacing chosen so that the children together keep the parent's
+  variance (``split_along_major_axis``).  Velocity, lifetime and time centre are the parent's: the
+  split is triggered by a screen-space (spatial) gradient, which says nothing about time, and
+  children that kept the lifetime but were drawn at other times (4DGS samples the 4D Gaussian)
+  would stack where the parent was alone.  Every other parameter is copied; the parent is removed.
+  (Drawing centres at random, as 3DGS does, leaves holes where both children land on one side:
+  on the pulling frames one such densification cost 7 dB of training PSNR, this rule 3; see
+  docs/QUALITY.md.)
+- Clones, the Gaussians they were cloned from, and split children get the opacity that, stacked
+  k-fold, composites to the original's (``share_opacity``; Rota Bulo et al. 2024), so density
+  control does not brighten what was already fitted.
 - When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
   it, those with the largest gradient are taken first.
 - Then PRUNE: sigmoid(opacity) < prune_opacity, or a covariance that overflows float64 (log scales
@@ -66,12 +72,43 @@ def covariance_4d(g: Gaussians) -> np.ndarray:
     return M @ np.swapaxes(M, -1, -2)
 
 
+def share_opacity(logit_opacity: np.ndarray, k: int) -> np.ndarray:
+    """Logit of the opacity o' with 1 - (1 - o')^k = o: k copies stacked on one another composite to
+    the parent's opacity (Rota Bulo et al. 2024, "Revising densification in Gaussian splatting"),
+    so that density control does not brighten or darken what was already fitted."""
+    o = sigmoid(logit_opacity)
+    o = 1.0 - (1.0 - o) ** (1.0 / max(int(k), 1))
+    o = np.clip(o, 1e-7, 1.0 - 1e-7)
+    return np.log(o / (1.0 - o)).astype(np.float32)
+
+
+def split_along_major_axis(g: Gaussians, k: int, divisor: float = 1.6):
+    """Children of rows that come in runs of k copies of their parent (rows r*k .. r*k + k - 1):
+    (means, log scales, q_l, q_r).  In units of the parent's std along the major axis of its
+    conditional spatial covariance, the children's std there is 1 / divisor and their centres are
+    evenly spaced over [-a, a] with mean square offset 1 - 1 / divisor^2, so the mixture keeps the
+    parent's variance (2 children, divisor 1.6: offsets +-0.78, std 0.625).  Velocity, lifetime and
+    the time centre are the parent's, so every child moves along its parent's path."""
+    cond, sigma_t, vel = motion_of(covariance_4d(g))                       # [n, 3, 3], [n], [n, 3]
+    lam, U = np.linalg.eigh(cond)                                          # ascending
+    axis = U[:, :, 2]                                                      # [n, 3]
+    sd = np.sqrt(np.maximum(lam[:, 2], 0.0))                               # [n]
+    child_sd = min(1.0, 1.0 / float(divisor)) if k > 1 else 1.0
+    a = math.sqrt((1.0 - child_sd ** 2) * 3.0 * (k - 1) / (k + 1)) if k > 1 else 0.0
+    c = np.tile(np.linspace(-a, a, k), len(g) // max(k, 1))                # [n]
+    means = g.means.astype(np.float64)
+    means[:, :3] += (c * sd)[:, None] * axis
+    cond = cond - ((1.0 - child_sd ** 2) * lam[:, 2])[:, None, None] * axis[:, :, None] * axis[:, None, :]
+    log_s, q_l, q_r = gaussian_from_covariance(moving_covariance(cond, sigma_t, vel))
+    return means.astype(np.float32), log_s.astype(np.float32), q_l.astype(np.float32), q_r.astype(np.float32)
+
+
 def _take(g: Gaussians, rows: np.ndarray) -> Dict[str, np.ndarray]:
     return {n: getattr(g, n)[rows] for n in PARAM_NAMES}
 
 
 def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, max_radius: np.ndarray,
-                      cfg, extent: float, rng: np.random.Generator, prune_big: bool = False,
+                      cfg, extent: float, prune_big: bool = False,
                       stats: Optional[dict] = None) -> Tuple[Gaussians, np.ndarray]:
     """Clone, split (4D) and prune; see the module docstring.  Returns (new_g, source_index [M]).
 
@@ -111,17 +148,16 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     parents = np.repeat(split_rows, children)                                  # [S * children]
     child = _take(g, parents)
     if parents.size:
-        sub = Gaussians(**child)
-        R = rotation_4d(sub)                                                   # [S*c, 4, 4]
-        std = np.exp(sub.scales.astype(np.float64))                           # [S*c, 4]
-        z = rng.standard_normal((parents.size, 4)) * std                      # N(0, S S^T)
-        child["means"] = (sub.means.astype(np.float64) + np.einsum("nij,nj->ni", R, z)).astype(np.float32)
-        cond, sigma_t, vel = motion_of(covariance_4d(sub))
-        child["scales"], child["quat_l"], child["quat_r"] = (a.astype(np.float32) for a in gaussian_from_covariance(
-            moving_covariance(cond / cfg.split_scale_divisor ** 2, sigma_t, vel)))
+        child["means"], child["scales"], child["quat_l"], child["quat_r"] = split_along_major_axis(
+            Gaussians(**child), children, cfg.split_scale_divisor)
+        child["opacity"] = share_opacity(child["opacity"], children)
 
     keep_rows = np.flatnonzero(~split)
     parts = [_take(g, keep_rows), _take(g, clone_rows), child]
+    clones_kept = np.isin(keep_rows, clone_rows)
+    parts[0]["opacity"] = parts[0]["opacity"].copy()
+    parts[0]["opacity"][clones_kept] = share_opacity(parts[0]["opacity"][clones_kept], 2)
+    parts[1]["opacity"] = share_opacity(parts[1]["opacity"], 2)
     new = {n: np.concatenate([p[n] for p in parts], 0) for n in PARAM_NAMES}
     source = np.concatenate([keep_rows, clone_rows, parents]).astype(np.int64)   # [M]
     is_new = np.concatenate([np.zeros(keep_rows.size, bool), np.ones(clone_rows.size + parents.size, bool)])

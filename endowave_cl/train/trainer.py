@@ -73,7 +73,8 @@ class Trainer:
         else:
             from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
-                               max_points=cfg.init_points, seed=cfg.seed, time_scale=cfg.init_time_scale,
+                               max_points=cfg.initial_points(scene.width, scene.height), seed=cfg.seed,
+                               time_scale=cfg.init_time_scale,
                                flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
             ck = None
@@ -173,7 +174,7 @@ class Trainer:
         info: Dict[str, object] = {}
         new_g, source = densify_and_prune(
             download(self.params), self.stats["grad_accum"].get(), self.stats["count"].get(),
-            self.stats["max_radius"].get(), self.cfg, self.extent, self.rng,
+            self.stats["max_radius"].get(), self.cfg, self.extent,
             prune_big=self.step > self.cfg.opacity_reset_every, stats=info)
         self.set_gaussians(new_g, moment_source_index(source, info["is_new"]))  # new rows: zero moments
 
