@@ -34,7 +34,8 @@ class Task:
     why: str = ""
     restart: bool = False
     result: Optional[dict] = None
-    started: Optional[float] = None
+    started: Optional[float] = None       # when it was submitted (driver clock)
+    ended: Optional[float] = None         # when its result arrived
 
 
 @dataclass
@@ -222,7 +223,7 @@ class Runner:
                     break
                 for key, res in self.ex.poll(timeout=0.5):
                     t = self.tasks[key]
-                    t.result = res
+                    t.result, t.ended = res, time.time()
                     result.ran.append(key)
                     took = _fmt_time(res.get("seconds", time.time() - (t.started or time.time())))
                     retried = f", attempt {res['attempt']}" if res.get("attempt", 1) > 1 else ""

@@ -160,9 +160,12 @@ def task_env(manifest) -> Dict[str, str]:
     and, for PoCL and torch, as many threads as the task has CPU cores (two tasks on a 2-core
     machine would otherwise each start 2 threads per kernel and contend)."""
     cores = str(max(1, int(manifest.resources["cpus"])))
-    return {"ENDOWAVE_PROGRESS": "plain", "ENDOWAVE_PROGRESS_INTERVAL": str(PROGRESS_INTERVAL),
-            "POCL_CPU_MAX_CU_NUM": os.environ.get("POCL_CPU_MAX_CU_NUM", cores),
-            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", cores)}
+    env = {"ENDOWAVE_PROGRESS": "plain", "ENDOWAVE_PROGRESS_INTERVAL": str(PROGRESS_INTERVAL)}
+    # PoCL's CPU thread count: POCL_MAX_PTHREAD_COUNT up to PoCL 4 (the pyopencl wheels' PoCL),
+    # POCL_CPU_MAX_CU_NUM from PoCL 5; a value the user set wins
+    for var in ("POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_NUM", "OMP_NUM_THREADS"):
+        env[var] = os.environ.get(var, cores)
+    return env
 
 
 def make_spec(manifest, scene, stage: str, run_dir, batch_id: str, restart: bool, signature: str) -> dict:
@@ -322,7 +325,7 @@ def run_task(spec: dict) -> dict:
                 _clear_caches()
         if not res["ok"]:
             log.write(res["error"] + "\n")
-    res.update({"seconds": time.time() - t0, "attempt": attempt, "pid": pid, "host": host,
+    res.update({"seconds": time.time() - t0, "started": t0, "attempt": attempt, "pid": pid, "host": host,
                 "scene": spec["scene"], "stage": stage})
     if res["ok"]:
         done = {"stage": stage, "options": spec["options"], "seconds": res["seconds"], "attempt": attempt,
