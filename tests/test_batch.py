@@ -326,3 +326,15 @@ def test_pool_runs_the_same_manifest_with_the_same_report(pool_run, request):
                 assert v == pytest.approx(ray_rows[name][k], rel=1e-6, abs=1e-9), (name, k)
             else:
                 assert v == ray_rows[name][k], (name, k)
+
+
+def test_progress_is_read_from_the_task_log(tmp_path):
+    """The per-scene progress line comes from the newest plain progress line of the current attempt."""
+    from endowave_cl.batch.runner import train_progress
+    d = T.batch_dir(tmp_path)
+    d.mkdir(parents=True)
+    line = "train: 300/1500 it (20%), 11.2 it/s, 1m47s left, loss=0.0412 psnr=27.31 N=500\n"
+    (d / "train.log").write_text("== batch x: attempt 1\n" + line)
+    assert train_progress(tmp_path) == {"step": 300, "total": 1500, "pct": 20, "eta": "1m47s", "psnr": 27.31}
+    (d / "train.log").write_text("== batch x: attempt 1\n" + line + "== batch x: attempt 2\n")
+    assert train_progress(tmp_path) is None       # a new attempt: the old figures are not its progress

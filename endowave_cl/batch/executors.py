@@ -108,6 +108,12 @@ class RayExecutor:
             key = self._refs.pop(ref)
             try:
                 out.append((key, ray.get(ref)))
+            except ray.exceptions.RayTaskError as e:
+                # run_task raised (it returns failures as results: this is a bug or a setup problem
+                # on the node, e.g. the output root not writable there): not retried by Ray
+                cause = getattr(e, "cause", None) or e
+                first = (str(cause).strip().splitlines() or [""])[0]
+                out.append((key, _failed(key, "unexpected", f"the task raised {type(cause).__name__}: {first[:300]}")))
             except ray.exceptions.RayError as e:
                 # the worker (or its node) died more often than the retries allow, or the task
                 # could not start (e.g. endowave-cl not installed on the cluster's nodes)
@@ -152,7 +158,7 @@ class PoolExecutor:
             total = gpus if gpus is not None else 1      # without --gpus: one GPU, shared
             if g > total:
                 raise EndowaveError(f"each task asks for {g:g} GPU(s) (manifest [resources]) but --gpus is {total}")
-            workers = min(workers, int(total // g) if g >= 1 else workers)
+            workers = min(workers, int(total // g))     # e.g. 0.5 GPU per task on 1 GPU: 2 at once
         self.workers = max(1, workers)
         self.gpus_per_task = int(g) if g >= 1 and float(g).is_integer() else 0
         self.queue: List[Tuple[tuple, dict, int]] = []

@@ -176,6 +176,9 @@ class Runner:
         running = [t for t in self.tasks.values() if t.scene == name and t.state == "running"]
         parts = []
         for t in running:
+            if not self._started(t):       # waiting for a worker (an old log's last line is not its progress)
+                parts.append(f"{t.stage} queued")
+                continue
             if t.stage == "train":
                 p = train_progress(self.run_dir(name))
                 if p is not None:
@@ -183,10 +186,7 @@ class Runner:
                     eta = "" if not p["eta"] else f", ETA {p['eta']}"
                     parts.append(f"train step {p['step']}/{p['total']} ({p['pct']}%){psnr}{eta}")
                     continue
-            if not self._started(t):
-                parts.append(f"{t.stage} queued")
-            else:
-                parts.append(f"{t.stage} running")
+            parts.append(f"{t.stage} running")
         return f"  {name}: " + "; ".join(parts)
 
     def _overall_line(self, t0: float) -> str:

@@ -296,7 +296,12 @@ def run_task(spec: dict) -> dict:
     t0 = time.time()
     run_dir, stage = Path(spec["run_dir"]), spec["stage"]
     bdir = batch_dir(run_dir)
-    bdir.mkdir(parents=True, exist_ok=True)
+    try:
+        bdir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:            # e.g. the root not writable on this node: fails alone, one line
+        return {"ok": False, "kind": "io", "error": f"{bdir}: cannot create the folder ({e.strerror or e})",
+                "seconds": time.time() - t0, "started": t0, "attempt": 1, "pid": os.getpid(),
+                "host": socket.gethostname(), "scene": spec["scene"], "stage": stage}
     for p in stale_temporaries(bdir):              # records half-written by a killed attempt
         with contextlib.suppress(OSError):
             p.unlink()
