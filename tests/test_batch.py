@@ -5,7 +5,7 @@ The end-to-end manifest: 3 tiny synthetic scenes (48x32, 8 frames; s1 trains lon
 worker can be killed mid-training) and one corrupt scene, through all five stages.  A thread
 SIGKILLs the process that holds s1's run folder lock (RUN/.lock holds the writer's pid) once a
 checkpoint exists; the task must be retried and resume from that checkpoint.  The Ray tests skip
-when Ray is not installed; the pool tests always run.  About a minute in all on 2 busy cores.
+when Ray is not installed; the pool tests always run.  80-90 s in all on 2 busy cores.
 """
 from __future__ import annotations
 
