@@ -22,6 +22,7 @@ COMMANDS = {
     "render": "render a trained run's test frames, a video and depth images",
     "eval": "evaluate a trained run (PSNR, SSIM, LPIPS, FPS)",
     "export": "export a trained model at time t as a 3DGS PLY",
+    "batch": "run a manifest of scenes (flow/train/eval/render/export) locally or on a Ray cluster",
 }
 
 DEVICE_COMMANDS = {"devices", "train", "render", "eval"}  # the ones that run OpenCL kernels
