@@ -21,8 +21,9 @@ def cpu_rt(rt):
 
 @pytest.fixture
 def fresh(monkeypatch, tmp_path):
-    """An empty cache folder and no forced variant."""
+    """An empty cache folder, no remembered verdicts and no forced variant."""
     monkeypatch.setenv(ENV_CACHE_DIR, str(tmp_path))
+    monkeypatch.setattr(P, "_MEMO", {})
     for v in (RZ.ENV_VARIANT, RZ.ENV_VEC_WIDTH, RZ.ENV_VEC_BLOCK_W, P.ENV_PLANT, P.ENV_TIMEOUT):
         monkeypatch.delenv(v, raising=False)
     return tmp_path
