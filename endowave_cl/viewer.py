@@ -1,0 +1,316 @@
+"""What the viewer shows, independent of the web front end (endowave_cl/viewer_app.py holds the
+viser wiring): browser camera -> our Camera, the rendered views (colour, colour-mapped depth, flow on
+a colour wheel), the ground-truth / error / tool-mask panes at frame times, their composition into
+the one image that is streamed, and the 3D Gaussians at a time for the browser's splat renderer.
+
+Everything here is plain numpy + the OpenCL render op, so it is tested without a browser.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from .camera import Camera
+
+MODES = ("colour", "depth", "flow")   # what the main pane shows
+DEPTH_PERCENTILES = (2.0, 98.0)       # the depth colour map spans these percentiles of the first depth view
+FLOW_PERCENTILE = 99.0                # the flow wheel saturates at this percentile of the first flow view ...
+FLOW_MIN_SCALE = 1e-3                 # ... but never below this fraction of the image height
+ALPHA_EMPTY = 0.5                     # depth / flow of pixels with less accumulated opacity are shown black
+ERROR_FULL_SCALE = 0.25               # error pane saturates here: the same scale as eval_worst.png
+PANE_GAP = 4                          # pixels of background between the main pane and the side panes
+
+
+# ---------------------------------------------------------------------------------------------
+# cameras
+
+def quat_to_matrix(wxyz) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> [3, 3] rotation matrix."""
+    w, x, y, z = (float(v) for v in np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz))
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def matrix_to_quat(R) -> np.ndarray:
+    """[3, 3] rotation matrix -> unit quaternion (w, x, y, z), w >= 0."""
+    from .export_ply import matrix_to_quaternion
+    q = matrix_to_quaternion(np.asarray(R, np.float64)[None])[0]
+    return q if q[0] >= 0 else -q
+
+
+def camera_from_pose(wxyz, position, fov_y: float, width: int, height: int, near: float = 0.01) -> Camera:
+    """A browser camera -> our pinhole Camera of ``width`` x ``height`` pixels.
+
+    viser reports the camera-to-world rotation (wxyz) and the centre (position) in the OpenCV
+    convention our Camera uses (x right, y down, z forward) and a vertical field of view; the
+    principal point is the image centre and pixels are square."""
+    R = quat_to_matrix(wxyz)                        # camera -> world
+    p = np.asarray(position, np.float64).reshape(3)
+    view = np.eye(4)
+    view[:3, :3] = R.T
+    view[:3, 3] = -R.T @ p
+    fy = 0.5 * height / math.tan(0.5 * float(fov_y))
+    return Camera(fy, fy, 0.5 * width, 0.5 * height, int(width), int(height), view.astype(np.float32), near)
+
+
+def pose_of_camera(cam: Camera) -> Tuple[np.ndarray, np.ndarray, float]:
+    """Our Camera -> (wxyz, position, vertical fov in radians): what the browser starts from."""
+    R = cam.viewmat[:3, :3].astype(np.float64)
+    return matrix_to_quat(R.T), cam.campos.astype(np.float64), 2.0 * math.atan(0.5 * cam.height / cam.fy)
+
+
+def render_size(height: int, aspect: float) -> Tuple[int, int]:
+    """(width, height) of a render ``height`` pixels high at the browser canvas's aspect (w / h)."""
+    h = max(8, int(height))
+    a = aspect if math.isfinite(aspect) and aspect > 0 else 1.0
+    return max(8, int(round(h * a))), h
+
+
+# ---------------------------------------------------------------------------------------------
+# colour maps
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(img, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+
+
+def depth_image(depth: np.ndarray, alpha: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Expected depth (depth / alpha) through the turbo colour map, near = red end, far = blue end;
+    pixels the Gaussians hardly cover are black.  uint8 RGB [H, W, 3]."""
+    import cv2
+    d = depth / np.maximum(alpha, 1e-6)
+    s = np.clip((hi - d) / max(hi - lo, 1e-12), 0.0, 1.0)            # 1 = near
+    rgb = cv2.applyColorMap((s * 255 + 0.5).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    return np.where((alpha >= ALPHA_EMPTY)[..., None], rgb, 0).astype(np.uint8)
+
+
+def depth_range(depth: np.ndarray, alpha: np.ndarray) -> Tuple[float, float]:
+    """The depth colour map's range: DEPTH_PERCENTILES of the covered pixels' expected depth."""
+    ok = alpha >= ALPHA_EMPTY
+    if not ok.any():
+        return 0.0, 1.0
+    d = (depth / np.maximum(alpha, 1e-6))[ok]
+    lo, hi = np.percentile(d, DEPTH_PERCENTILES)
+    return float(lo), float(max(hi, lo + 1e-6))
+
+
+def flow_image(flow: np.ndarray, alpha: np.ndarray, scale: float) -> np.ndarray:
+    """Flow [H, W, 2] in pixels on the usual colour wheel: hue = direction, saturation = magnitude
+    / scale (white = still, saturated at ``scale`` pixels); uncovered pixels black.  uint8 RGB."""
+    import cv2
+    mag = np.hypot(flow[..., 0], flow[..., 1])
+    ang = (np.degrees(np.arctan2(flow[..., 1], flow[..., 0])) % 360.0) / 2.0     # OpenCV hue: 0..180
+    hsv = np.stack([ang, np.clip(mag / max(scale, 1e-12), 0, 1) * 255, np.full_like(mag, 255)], -1)
+    rgb = cv2.cvtColor(hsv.astype(np.uint8), cv2.COLOR_HSV2RGB)
+    return np.where((alpha >= ALPHA_EMPTY)[..., None], rgb, 0).astype(np.uint8)
+
+
+def error_image(pred: np.ndarray, gt: np.ndarray, mask: Optional[np.ndarray]) -> np.ndarray:
+    """Mean |render - ground truth| over RGB through the inferno map, saturating at
+    ERROR_FULL_SCALE; tool pixels (mask 0) count as 0, as eval scores them.  uint8 RGB."""
+    import cv2
+    err = np.abs(np.clip(pred, 0, 1) - gt).mean(-1)
+    if mask is not None:
+        err = err * mask
+    e8 = np.clip(err / ERROR_FULL_SCALE * 255 + 0.5, 0, 255).astype(np.uint8)
+    return cv2.applyColorMap(e8, cv2.COLORMAP_INFERNO)[..., ::-1].copy()
+
+
+def mask_image(gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The ground-truth frame with its tool pixels (mask 0) tinted red.  uint8 RGB."""
+    tool = (mask < 0.5)[..., None]
+    tinted = np.where(tool, 0.4 * gt + 0.6 * np.array([1.0, 0.1, 0.1], np.float32), gt)
+    return _to_u8(tinted)
+
+
+def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
+    mse = float(np.mean((np.clip(pred, 0, 1) - gt) ** 2))
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+# ---------------------------------------------------------------------------------------------
+# composition
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    """Write ``text`` in the top-left corner (white on a dark box), scaled to the pane."""
+    import cv2
+    img = np.ascontiguousarray(img)
+    s = max(0.3, img.shape[0] / 600.0)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, s, 1)
+    cv2.rectangle(img, (0, 0), (tw + 6, th + base + 6), (0, 0, 0), -1)
+    cv2.putText(img, text, (3, th + 3), cv2.FONT_HERSHEY_SIMPLEX, s, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def _fit(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Letterbox ``img`` into a w x h black box, aspect kept."""
+    import cv2
+    ih, iw = img.shape[:2]
+    s = min(w / iw, h / ih)
+    nw, nh = max(1, int(round(iw * s))), max(1, int(round(ih * s)))
+    out = np.zeros((h, w, 3), np.uint8)
+    r = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    y0, x0 = (h - nh) // 2, (w - nw) // 2
+    out[y0:y0 + nh, x0:x0 + nw] = r
+    return out
+
+
+def main_pane_width(width: int, n_side: int) -> int:
+    """Width of the main pane in a ``width``-wide image with ``n_side`` side panes: all of it with
+    none, else the left half (the side panes stack in the right half)."""
+    return width if n_side == 0 else max(8, (width - PANE_GAP) // 2)
+
+
+def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, height: int) -> np.ndarray:
+    """The streamed image: the main pane on the left, the labelled side panes stacked on the right,
+    each letterboxed; just ``main`` when there are none."""
+    if not side:
+        return main
+    mw = main.shape[1]
+    out = np.zeros((height, width, 3), np.uint8)
+    out[:, :mw] = main[:height]
+    x0, sw = mw + PANE_GAP, width - mw - PANE_GAP
+    ph = (height - PANE_GAP * (len(side) - 1)) // len(side)
+    for i, (text, img) in enumerate(side):
+        y0 = i * (ph + PANE_GAP)
+        out[y0:y0 + ph, x0:x0 + sw] = _label(_fit(img, sw, ph), text)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the model being viewed
+
+@dataclass
+class ViewState:
+    """One client's settings when a frame is rendered."""
+    t: float = 0.0
+    mode: str = "colour"
+    height: int = 256
+    show_gt: bool = False
+    show_error: bool = False
+    show_mask: bool = False
+
+
+@dataclass
+class ViewResult:
+    image: np.ndarray              # uint8 RGB [H, W, 3]: what is streamed
+    camera: Camera                 # the main pane's camera
+    t: float
+    frame: Optional[int]           # the frame whose time t is, if any
+    info: Dict[str, object] = field(default_factory=dict)
+    render_ms: float = 0.0
+
+
+class ViewerModel:
+    """A loaded run on one OpenCL device: renders views for any number of clients (one at a time:
+    the device queue is shared)."""
+
+    def __init__(self, loaded, rt):
+        from .gaussians import upload
+        self.run = loaded
+        self.rt = rt
+        self.scene = loaded.scene
+        self.gaussians = loaded.gaussians
+        self.params = upload(rt, loaded.gaussians)
+        self.lock = threading.Lock()
+        frames = self.scene.frames
+        self.times = np.array([f.time for f in frames], np.float64)
+        self.dt_frame = 1.0 / max(len(frames) - 1, 1)
+        self.test = set(self.scene.test_indices)
+        self.depth_lo_hi: Optional[Tuple[float, float]] = None
+        self.flow_scale: Optional[float] = None          # fraction of the image height
+
+    @property
+    def start_camera(self) -> Camera:
+        """The training camera of the first frame: where the browser starts."""
+        return self.scene.frames[0].camera
+
+    def frame_at(self, t: float, tol: float) -> Optional[int]:
+        """The frame whose time is within ``tol`` of t, else None."""
+        k = int(np.argmin(np.abs(self.times - t)))
+        return k if abs(self.times[k] - t) <= tol else None
+
+    def frame_kind(self, k: int) -> str:
+        return "test" if k in self.test else "train"
+
+    def render_host(self, cam: Camera, t: float, t_flow: Optional[float] = None) -> Dict[str, np.ndarray]:
+        from .render import render
+        with self.lock:
+            return render(self.rt, self.params, cam, float(t), t_flow).host()
+
+    def main_view(self, cam: Camera, st: ViewState) -> Tuple[np.ndarray, Dict[str, object]]:
+        """The main pane (uint8 RGB) in the chosen mode, and what its colour map means."""
+        flow_t = st.t + self.dt_frame if st.mode == "flow" else None
+        h = self.render_host(cam, st.t, flow_t)
+        info: Dict[str, object] = {}
+        if st.mode == "depth":
+            if self.depth_lo_hi is None:        # fixed for the session so colours compare across time
+                self.depth_lo_hi = depth_range(h["depth"], h["alpha"])
+            lo, hi = self.depth_lo_hi
+            info["depth_range"] = (lo, hi)
+            return depth_image(h["depth"], h["alpha"], lo, hi), info
+        if st.mode == "flow":
+            if self.flow_scale is None:
+                ok = h["alpha"] >= ALPHA_EMPTY
+                mag = np.hypot(h["flow"][..., 0], h["flow"][..., 1])[ok]
+                p = float(np.percentile(mag, FLOW_PERCENTILE)) if mag.size else 0.0
+                self.flow_scale = max(p / cam.height, FLOW_MIN_SCALE)
+            scale = self.flow_scale * cam.height
+            info["flow_scale_px"] = scale
+            return flow_image(h["flow"], h["alpha"], scale), info
+        return _to_u8(h["image"]), info
+
+    def view(self, pose, st: ViewState, canvas_aspect: float, tol: float) -> ViewResult:
+        """Render what one client sees: pose = (wxyz, position, fov_y) of its browser camera."""
+        import time
+        t0 = time.perf_counter()
+        W, H = render_size(st.height, canvas_aspect)
+        k = self.frame_at(st.t, tol)
+        wanted = [s for s, on in (("gt", st.show_gt), ("error", st.show_error),
+                                  ("mask", st.show_mask and self.scene.has_masks)) if on]
+        n_side = len(wanted) if k is not None else 0
+        mw = main_pane_width(W, n_side)
+        cam = camera_from_pose(pose[0], pose[1], pose[2], mw, H, self.start_camera.near)
+        main, info = self.main_view(cam, st)
+        side: List[Tuple[str, np.ndarray]] = []
+        if n_side:
+            f = self.scene.frames[k]
+            kind = self.frame_kind(k)
+            if "gt" in wanted:
+                side.append((f"ground truth, frame {k} ({kind})", _to_u8(f.image)))
+            if "error" in wanted:
+                # the error is only meaningful from the frame's own camera: render there
+                pred = self.render_host(f.camera, f.time)["image"]
+                side.append((f"|render - truth| from frame {k}'s camera, full scale {ERROR_FULL_SCALE}",
+                             error_image(pred, f.image, f.mask)))
+                info["psnr"] = psnr(pred * (1 if f.mask is None else f.mask[..., None]),
+                                    f.image * (1 if f.mask is None else f.mask[..., None]))
+            if "mask" in wanted and f.mask is not None:
+                side.append((f"tool mask, frame {k} (red: not supervised)", mask_image(f.image, f.mask)))
+        image = compose(main, side, W, H)
+        return ViewResult(image, cam, float(st.t), k, info, (time.perf_counter() - t0) * 1e3)
+
+    # -- browser (client-side) mode --------------------------------------------------------------
+
+    def splats_at(self, t: float, eye) -> Dict[str, np.ndarray]:
+        """The 3D Gaussians at time t for a generic splat renderer: centres [M, 3], covariances
+        [M, 3, 3] (the conditional mean and covariance given t), opacities [M, 1] (opacity x the
+        temporal marginal) and colours [M, 3] (TEASH colour at t, seen from ``eye``: a splat
+        renderer takes one colour per Gaussian, not spherical harmonics)."""
+        import torch
+
+        from .export_ply import gaussians_at
+        from .reference.project import sh_basis
+        a = gaussians_at(self.gaussians, float(t))
+        mean = a["mean"]
+        d = mean - np.asarray(eye, np.float64)[None, :]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        K = a["sh"].shape[1]
+        Y = sh_basis(torch.from_numpy(d), int(round(math.sqrt(K))) - 1).numpy()   # [M, K]
+        rgb = np.clip(0.5 + np.einsum("nkc,nk->nc", a["sh"], Y), 0.0, 1.0)
+        return {"centers": mean.astype(np.float32), "covariances": a["cov"].astype(np.float32),
+                "rgbs": rgb.astype(np.float32), "opacities": a["opacity"][:, None].astype(np.float32)}
