@@ -58,6 +58,13 @@ def run(args) -> int:
         raise EndowaveError(f"name a run folder, or use --demo to open the newest under runs/ ({DEMO_HINT})")
     if not run_dir.is_dir():
         raise EndowaveError(f"{run_dir}: run folder not found")
+    # the run's own problems first, before what the viewer needs installed
+    from ..train.run_folder import checkpoints_by_step
+    if not (run_dir / "config.json").is_file():
+        raise EndowaveError(f"{run_dir}: not a training run (no config.json); train one with endowave-cl train")
+    if not checkpoints_by_step(run_dir):
+        raise EndowaveError(f"{run_dir}: no checkpoint_*.npz yet; the viewer opens a run once training has "
+                            f"saved one")
     try:
         import viser  # noqa: F401
     except ImportError:
