@@ -181,6 +181,26 @@ def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, he
     return out
 
 
+def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
+    """reference/project.py's sh_basis in numpy (same constants, order and signs): unit directions
+    [N, 3] -> [N, (degree+1)^2].  The torch one is several times slower for one call on a CPU."""
+    from .reference.project import SH_C0, SH_C1, SH_C2, SH_C3
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    out = [np.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
+                SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z,
+                SH_C3[2] * y * (4 * zz - xx - yy), SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3 * yy)]
+    return np.stack(out, -1)
+
+
 # ---------------------------------------------------------------------------------------------
 # the model being viewed
 
@@ -296,21 +316,45 @@ class ViewerModel:
 
     # -- browser (client-side) mode --------------------------------------------------------------
 
+    def _motion(self):
+        """What of each Gaussian does not depend on t, computed once: its 4D mean, the conditional
+        spatial covariance Sxx - sxt sxt^T / stt, the velocity sxt / stt and stt (export_ply.py's
+        gaussians_at evaluates the same formulas, and the eigen-decomposition a PLY needs, per call)."""
+        if getattr(self, "_motion_cache", None) is None:
+            from .train.densify import covariance_4d
+            sigma = covariance_4d(self.gaussians)                       # [N, 4, 4] float64
+            stt = sigma[:, 3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                vel = sigma[:, :3, 3] / stt[:, None]
+                cov = sigma[:, :3, :3] - sigma[:, :3, 3, None] * vel[:, None, :]
+            ok = np.isfinite(stt) & (stt > 0) & np.all(np.isfinite(cov), axis=(1, 2))
+            self._motion_cache = (self.gaussians.means.astype(np.float64), cov, vel, stt, ok)
+        return self._motion_cache
+
     def splats_at(self, t: float, eye) -> Dict[str, np.ndarray]:
         """The 3D Gaussians at time t for a generic splat renderer: centres [M, 3], covariances
         [M, 3, 3] (the conditional mean and covariance given t), opacities [M, 1] (opacity x the
-        temporal marginal) and colours [M, 3] (TEASH colour at t, seen from ``eye``: a splat
-        renderer takes one colour per Gaussian, not spherical harmonics)."""
-        import torch
-
-        from .export_ply import gaussians_at
-        from .reference.project import sh_basis
-        a = gaussians_at(self.gaussians, float(t))
-        mean = a["mean"]
+        temporal marginal; Gaussians below MARGINAL_CULL dropped, as the rasterizer and the PLY
+        export drop them) and colours [M, 3] (TEASH colour at t, seen from ``eye``: a splat renderer
+        takes one colour per Gaussian, not spherical harmonics)."""
+        from .gaussians import MARGINAL_CULL, TEASH_PERIOD
+        g = self.gaussians
+        means, cov, vel, stt, ok = self._motion()
+        dt = float(t) - means[:, 3]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            m = np.exp(-0.5 * dt * dt / stt)
+        keep = ok & np.isfinite(m) & (m >= MARGINAL_CULL)
+        dt, m = dt[keep], m[keep]
+        mean = means[keep, :3] + vel[keep] * dt[:, None]
+        opac = m / (1.0 + np.exp(-g.opacity[keep].astype(np.float64)))
+        nt1 = g.sh.shape[1]
+        cosn = np.cos(2.0 * math.pi * np.arange(nt1) / TEASH_PERIOD * float(t) + g.phase[keep].astype(np.float64))
+        cosn[:, 0] = 1.0                                                # phi_0 unused (gaussians.py)
         d = mean - np.asarray(eye, np.float64)[None, :]
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        K = a["sh"].shape[1]
-        Y = sh_basis(torch.from_numpy(d), int(round(math.sqrt(K))) - 1).numpy()   # [M, K]
-        rgb = np.clip(0.5 + np.einsum("nkc,nk->nc", a["sh"], Y), 0.0, 1.0)
-        return {"centers": mean.astype(np.float32), "covariances": a["cov"].astype(np.float32),
-                "rgbs": rgb.astype(np.float32), "opacities": a["opacity"][:, None].astype(np.float32)}
+        K = g.sh.shape[2]
+        Y = sh_basis_np(d.astype(np.float32), int(round(math.sqrt(K))) - 1)   # [M, K]
+        sh = g.sh[keep].astype(np.float32)
+        rgb = 0.5 + np.einsum("nikc,nk,ni->nc", sh, Y, cosn.astype(np.float32), optimize=True)
+        return {"centers": mean.astype(np.float32), "covariances": cov[keep].astype(np.float32),
+                "rgbs": np.clip(rgb, 0.0, 1.0).astype(np.float32), "opacities": opac[:, None].astype(np.float32)}

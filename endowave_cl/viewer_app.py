@@ -257,6 +257,10 @@ class ViewerApp:
             server.stop()
             raise EndowaveError(f"port {self.port} is already in use on {self.host}; pick another with --port")
         self.server = server
+        # the panel as a sidebar beside the image, not floating over it; no share button: it would
+        # offer to publish the (possibly patient) video through viser's public tunnel
+        server.gui.configure_theme(control_width="medium", show_share_button=False)
+        server.gui.main_panel.dock_right()
         self._set_initial_camera(server)
 
         @server.on_client_connect

@@ -28,10 +28,10 @@ CHROMIUM = os.environ.get("ENDOWAVE_CHROMIUM", "/usr/bin/chromium")
 # as python.md prescribes for this network: no first-run, sync or background connections
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-VIEWPORT = {"width": 1000, "height": 800}     # canvas aspect 1.25: renders are 320x256 at height 256
-# the region of the page compared with a direct render: clear of the GUI panel (top right) and of
-# the software-WebGL notice (top left)
-REGION = (slice(200, 760), slice(40, 640))     # rows, columns in page pixels
+VIEWPORT = {"width": 1300, "height": 800}     # the 3D canvas beside the panel sidebar
+# the part of the canvas compared with a direct render (fractions of its height, width): clear of
+# the software-WebGL notice (top left) and the axes gizmo (bottom left)
+REGION = ((0.25, 0.95), (0.15, 0.97))
 MATCH = 0.01      # mean |page - direct render| over the region that counts as the same image (JPEG q90
                   # and the browser's scaling give ~0.003; the tiny model's t=0 and t=1 differ by ~0.04)
 
@@ -178,11 +178,30 @@ def _wait_for_image(page, n: int, timeout_s: float = 120.0) -> str:
     return _status(page)
 
 
+def _canvas_box(page):
+    """(x, y, w, h) in page pixels of the largest canvas: the 3D view the image is drawn in."""
+    boxes = [b for b in (c.bounding_box() for c in page.locator("canvas").all()) if b]
+    b = max(boxes, key=lambda b: b["width"] * b["height"])
+    return tuple(int(round(b[k])) for k in ("x", "y", "width", "height"))
+
+
+def _region(img: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    (r0, r1), (c0, c1) = REGION
+    return img[int(r0 * h):int(r1 * h), int(c0 * w):int(c1 * w)]
+
+
 def _shot(page) -> np.ndarray:
+    """The canvas as float RGB [h, w, 3]."""
     import cv2
-    png = page.screenshot()
+    x, y, w, h = _canvas_box(page)
+    png = page.screenshot(clip={"x": x, "y": y, "width": w, "height": h})
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
     return img.astype(np.float32) / 255.0
+
+
+def _diff(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(_region(a) - _region(b)).mean())
 
 
 def _settled_shot(page, ref: np.ndarray, timeout_s: float = 15.0):
@@ -191,7 +210,7 @@ def _settled_shot(page, ref: np.ndarray, timeout_s: float = 15.0):
     deadline = time.time() + timeout_s
     while True:
         shot = _shot(page)
-        err = float(np.abs(shot[REGION] - ref[REGION]).mean())
+        err = _diff(shot, ref)
         if err < MATCH or time.time() > deadline:
             return shot, err
         time.sleep(0.2)
@@ -216,10 +235,12 @@ def test_slider_streams_the_render_at_that_time(tiny_run, rt, browser_page):
     try:
         page.goto(app.url)
         text = _wait_for_image(page, 1)
-        assert "t = 0.000 (frame 0, train)" in text and "320x256" in text, text
+        assert "t = 0.000 (frame 0, train)" in text, text
         session = next(iter(app.sessions.values()))
         cam0, n0 = session.last.camera, session.images_sent
-        size = (VIEWPORT["width"], VIEWPORT["height"])
+        _, _, cw, ch = _canvas_box(page)
+        size = (cw, ch)
+        assert cam0.height == 256 and cam0.width == round(256 * cw / ch)   # the canvas's aspect
         ref0 = _direct(model, cam0, 0.0, size)
         shot0, before = _settled_shot(page, ref0)
 
@@ -235,13 +256,11 @@ def test_slider_streams_the_render_at_that_time(tiny_run, rt, browser_page):
         ref1 = _direct(model, cam1, 1.0, size)
         shot1, err1 = _settled_shot(page, ref1)
 
-        r = REGION
-        changed = float(np.abs(shot1[r] - shot0[r]).mean())
-        err0 = float(np.abs(shot1[r] - ref0[r]).mean())
-        truth_gap = float(np.abs(ref1[r] - ref0[r]).mean())
-        import cv2
+        changed = _diff(shot1, shot0)
+        err0 = _diff(shot1, ref0)
+        truth_gap = _diff(ref1, ref0)
         art = _artefact_dir() / "viewer_t1.png"
-        cv2.imwrite(str(art), (shot1[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        page.screenshot(path=str(art))
         print(f"page vs direct render: t=0 {before:.4f}, t=1 {err1:.4f} (vs t=0 render {err0:.4f}); "
               f"page changed by {changed:.4f}, renders differ by {truth_gap:.4f}; screenshot {art}")
         assert truth_gap > 0.01, "the tiny model barely changes over time: the test would prove nothing"
