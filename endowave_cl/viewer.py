@@ -1,7 +1,7 @@
 """What the viewer shows, independent of the web front end (endowave_cl/viewer_app.py holds the
 viser wiring): browser camera -> our Camera, the rendered views (colour, colour-mapped depth, flow on
 a colour wheel), the ground-truth / error / tool-mask panes at frame times, their composition into
-the one image that is streamed, and the 3D Gaussians at a time for the browser's splat renderer.
+the one image that is streamed (a 2 x 2 grid when any is on), and the 3D Gaussians at a time for the browser's splat renderer.
 
 Everything here is plain numpy + the OpenCL render op, so it is tested without a browser.
 """
@@ -22,7 +22,7 @@ FLOW_PERCENTILE = 99.0                # the flow wheel saturates at this percent
 FLOW_MIN_SCALE = 1e-3                 # ... but never below this fraction of the image height
 ALPHA_EMPTY = 0.5                     # depth / flow of pixels with less accumulated opacity are shown black
 ERROR_FULL_SCALE = 0.25               # error pane saturates here: the same scale as eval_worst.png
-PANE_GAP = 4                          # pixels of background between the main pane and the side panes
+PANE_GAP = 4                          # pixels of background between the panes
 
 
 # ---------------------------------------------------------------------------------------------
@@ -159,25 +159,26 @@ def _fit(img: np.ndarray, w: int, h: int) -> np.ndarray:
     return out
 
 
-def main_pane_width(width: int, n_side: int) -> int:
-    """Width of the main pane in a ``width``-wide image with ``n_side`` side panes: all of it with
-    none, else the left half (the side panes stack in the right half)."""
-    return width if n_side == 0 else max(8, (width - PANE_GAP) // 2)
+def pane_size(width: int, height: int, n_side: int) -> Tuple[int, int]:
+    """(w, h) of each pane in a width x height image with ``n_side`` side panes: the whole image
+    with none, else a 2 x 2 grid (main top left, then ground truth, error, tool mask).  The main pane
+    keeps the browser's field of view, so it frames the same view at half size."""
+    if n_side == 0:
+        return width, height
+    return max(8, (width - PANE_GAP) // 2), max(8, (height - PANE_GAP) // 2)
 
 
 def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, height: int) -> np.ndarray:
-    """The streamed image: the main pane on the left, the labelled side panes stacked on the right,
-    each letterboxed; just ``main`` when there are none."""
+    """The streamed image: ``main`` alone, or the 2 x 2 grid of pane_size with the labelled side
+    panes (letterboxed) after the main one."""
     if not side:
         return main
-    mw = main.shape[1]
+    pw, ph = main.shape[1], main.shape[0]
     out = np.zeros((height, width, 3), np.uint8)
-    out[:, :mw] = main[:height]
-    x0, sw = mw + PANE_GAP, width - mw - PANE_GAP
-    ph = (height - PANE_GAP * (len(side) - 1)) // len(side)
-    for i, (text, img) in enumerate(side):
-        y0 = i * (ph + PANE_GAP)
-        out[y0:y0 + ph, x0:x0 + sw] = _label(_fit(img, sw, ph), text)
+    cells = [(0, 0), (0, pw + PANE_GAP), (ph + PANE_GAP, 0), (ph + PANE_GAP, pw + PANE_GAP)]
+    out[:ph, :pw] = main
+    for (y0, x0), (text, img) in zip(cells[1:], side):
+        out[y0:y0 + ph, x0:x0 + pw] = _label(_fit(img, pw, ph), text)
     return out
 
 
@@ -293,8 +294,8 @@ class ViewerModel:
         wanted = [s for s, on in (("gt", st.show_gt), ("error", st.show_error),
                                   ("mask", st.show_mask and self.scene.has_masks)) if on]
         n_side = len(wanted) if k is not None else 0
-        mw = main_pane_width(W, n_side)
-        cam = camera_from_pose(pose[0], pose[1], pose[2], mw, H, self.start_camera.near)
+        pw, ph = pane_size(W, H, n_side)
+        cam = camera_from_pose(pose[0], pose[1], pose[2], pw, ph, self.start_camera.near)
         main, info = self.main_view(cam, st)
         side: List[Tuple[str, np.ndarray]] = []
         if n_side:

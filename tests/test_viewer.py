@@ -76,19 +76,23 @@ def test_depth_map_near_red_far_blue():
     np.testing.assert_array_equal(img2[0, 0], img[0, 1])
 
 
-def test_compose_puts_side_panes_right_of_the_main_one():
-    from endowave_cl.viewer import PANE_GAP, compose, main_pane_width
+def test_compose_grid_main_top_left_then_side_panes():
+    from endowave_cl.viewer import PANE_GAP, compose, pane_size
     W, H = 320, 256
-    assert main_pane_width(W, 0) == W
-    mw = main_pane_width(W, 2)
-    main = np.full((H, mw, 3), 200, np.uint8)
+    assert pane_size(W, H, 0) == (W, H)
+    pw, ph = pane_size(W, H, 2)
+    assert (pw, ph) == ((W - PANE_GAP) // 2, (H - PANE_GAP) // 2)
+    main = np.full((ph, pw, 3), 200, np.uint8)
     gt = np.full((48, 64, 3), 50, np.uint8)
-    out = compose(main, [("a", gt), ("b", gt)], W, H)
+    err = np.full((48, 64, 3), 90, np.uint8)
+    out = compose(main, [("a", gt), ("b", err)], W, H)
     assert out.shape == (H, W, 3)
-    assert (out[:, :mw] == 200).all()
-    assert (out[:, mw:mw + PANE_GAP] == 0).all()
-    assert (out[H // 4 + 20, mw + PANE_GAP + 5:] == 50).any()          # first pane, below its label
-    assert compose(main, [], mw, H) is main
+    assert (out[:ph, :pw] == 200).all()
+    assert (out[:, pw:pw + PANE_GAP] == 0).all() and (out[ph:ph + PANE_GAP] == 0).all()
+    assert (out[ph // 2, pw + PANE_GAP + 5:] == 50).any()               # top right: the first side pane
+    assert (out[ph + PANE_GAP + ph // 2, :pw] == 90).any()              # bottom left: the second
+    assert (out[ph + PANE_GAP:, pw + PANE_GAP:] == 0).all()             # bottom right: empty
+    assert compose(main, [], pw, ph) is main
 
 
 def test_error_image_ignores_tool_pixels():
