@@ -27,6 +27,7 @@ def main() -> int:
     ap.add_argument("--height", default="512")
     ap.add_argument("--mode", default="colour")
     ap.add_argument("--no-panes", action="store_true")
+    ap.add_argument("--browser-renderer", action="store_true", help="the client-side splat mode")
     ap.add_argument("--out", default="docs/viewer.png")
     ap.add_argument("--chromium", default=os.environ.get("ENDOWAVE_CHROMIUM", "/usr/bin/chromium"))
     a = ap.parse_args()
@@ -59,6 +60,8 @@ def main() -> int:
             if not a.no_panes:
                 s.gt.value = True
                 s.err.value = True
+            if a.browser_renderer:
+                s.renderer.value = "browser: 3D splats at t"
             s.time.value = float(model.times[a.frame])
             n = s.images_sent
             time.sleep(1.0)
