@@ -95,6 +95,15 @@ def test_demo_without_runs_says_how_to_make_one(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_without_viser_says_what_to_install(tiny_run):
+    code = ("import sys; sys.modules['viser'] = None  # import viser now raises ImportError\n"
+            "from endowave_cl.cli import main; sys.exit(main(['view', sys.argv[1]]))")
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-c", code, str(tiny_run)], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode == 1 and "[viewer]" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_taken_port_is_one_line_error(tiny_run):
     if __import__("importlib").util.find_spec("viser") is None:
         _missing("viser is not installed (pip install -c constraints.txt '.[viewer]')")

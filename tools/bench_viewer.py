@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-VIEWPORT = {"width": 1000, "height": 800}
+VIEWPORT = {"width": 1000, "height": 800}     # of the 3D canvas (the window is wider by the panel)
 
 # Installed in the page: every status-line change is time-stamped with the image number it shows,
 # and every key press on the page too (capture phase, before the slider handles it).
@@ -38,8 +38,8 @@ OBSERVER_JS = """() => {
   document.addEventListener('keydown', () => window.__keys.push(performance.now()), true);
   const seen = {n: -1};
   new MutationObserver(() => {
-    const m = document.body.innerText.match(/image (\\d+) ·/);
-    if (m && +m[1] !== seen.n) { seen.n = +m[1]; window.__imgs.push([performance.now(), +m[1]]); }
+    const m = document.body.innerText.match(/image (\\d+) · t = ([0-9.]+)/);
+    if (m && +m[1] !== seen.n) { seen.n = +m[1]; window.__imgs.push([performance.now(), +m[1], m[2]]); }
   }).observe(document.body, {subtree: true, childList: true, characterData: true});
 }"""
 
@@ -79,12 +79,31 @@ def main() -> int:
             page = ctx.new_page()
             page.goto(app.url)
             page.wait_for_function("() => /image \\d+ ·/.test(document.body.innerText)", timeout=300e3)
+            # size the window so that the 3D canvas beside the panel is 1000 x 800 (aspect 1.25:
+            # height 256 renders 320x256, 512 renders 640x512)
+            box = max((c.bounding_box() for c in page.locator("canvas").all()),
+                      key=lambda b: b["width"] * b["height"])
+            page.set_viewport_size({"width": VIEWPORT["width"] + int(round(VIEWPORT["width"] - box["width"])),
+                                    "height": VIEWPORT["height"]})
+            time.sleep(2.0)
             page.evaluate(OBSERVER_JS)
             s = next(iter(app.sessions.values()))
             for h in a.heights:
                 s.resolution.value = str(h)
                 time.sleep(2.0)                                  # let the first image at this size settle
                 w, hh = s.last.image.shape[1], s.last.image.shape[0]
+                # -- the same view without the browser: render + colour + JPEG encode ----------------
+                from endowave_cl.viewer import ViewState
+                import cv2
+                pose = (s.client.camera.wxyz, s.client.camera.position, s.client.camera.fov)
+                ms = []
+                for i in range(10):
+                    t0 = time.perf_counter()
+                    res = model.view(pose, ViewState(t=0.05 * i, height=h), w / hh, 1e-4)
+                    cv2.imencode(".jpg", res.image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])   # as viser does
+                    ms.append((time.perf_counter() - t0) * 1e3)
+                print(f"{w}x{hh}: in-process render + JPEG, no browser: median {statistics.median(ms):.0f} ms "
+                      f"({1e3 / statistics.median(ms):.1f} images/s)")
                 # -- playing: images per second ---------------------------------------------------
                 n_srv0, t0 = s.images_sent, time.perf_counter()
                 page.evaluate("() => { window.__imgs = []; }")
@@ -102,16 +121,20 @@ def main() -> int:
                 slider.focus()
                 lat, srv = [], []
                 for i in range(a.latency_moves):
-                    time.sleep(0.6)                              # idle: each move starts from a quiet viewer
+                    # idle first, so that no image for an earlier state is in flight
+                    time.sleep(max(0.6, 3e-3 * s.last.render_ms))
                     page.evaluate("() => { window.__imgs = []; window.__keys = []; }")
-                    n_before = s.images_sent
-                    s.latencies_ms.clear()
+                    t_old = float(s.time.value)
                     page.keyboard.press("ArrowRight" if i % 2 == 0 else "ArrowLeft")
-                    page.wait_for_function(f"() => window.__imgs.some(e => e[1] > {n_before})", timeout=60e3)
+                    deadline = time.time() + 30
+                    while float(s.time.value) == t_old and time.time() < deadline:
+                        time.sleep(0.005)
+                    t_new = f"{float(s.time.value):.3f}"
+                    page.wait_for_function(f"() => window.__imgs.some(e => e[2] === '{t_new}')", timeout=60e3)
                     k, im = page.evaluate("() => [window.__keys, window.__imgs]")
-                    first = min(e[0] for e in im if e[1] > n_before)
+                    first = min(e[0] for e in im if e[2] == t_new)
                     lat.append(first - k[0])
-                    srv.extend(s.latencies_ms)
+                    srv.append(s.latencies_ms[-1])
                 med = statistics.median(lat)
                 print(f"{w}x{hh}: slider -> image in the page: median {med:.0f} ms, min {min(lat):.0f}, "
                       f"max {max(lat):.0f} over {len(lat)} moves; server change -> image sent: median "
