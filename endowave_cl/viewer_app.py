@@ -35,16 +35,28 @@ RENDERERS = ("server: OpenCL (exact)", "browser: 3D splats at t")
 MAX_MARK_LABELS = 9               # frame-time marks beyond this many are drawn without numbers
 
 
-def port_free(host: str, port: int) -> bool:
-    """Whether ``port`` can be bound on ``host`` now (with SO_REUSEADDR, as the server binds)."""
-    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+def port_problem(host: str, port: int) -> Optional[str]:
+    """Why ``port`` cannot be listened on at ``host`` now (bound with SO_REUSEADDR, as the server
+    binds), or None when it can."""
+    import errno
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as e:
+        return f"cannot resolve --host {host}: {e.strerror or e}"
+    fam, _, _, _, addr = infos[0]
     with socket.socket(fam, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind((host, port))
-        except OSError:
-            return False
-    return True
+            s.bind(addr)
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                return f"port {port} is already in use on {host}; pick another with --port"
+            return f"cannot listen on {host}:{port}: {e.strerror or e}"
+    return None
+
+
+def port_free(host: str, port: int) -> bool:
+    return port_problem(host, port) is None
 
 
 def _marks(times: np.ndarray):
@@ -223,6 +235,8 @@ class Session:
         if "depth_range" in res.info:
             lo, hi = res.info["depth_range"]
             extra += f" · depth {lo:.3g} (red) to {hi:.3g} (blue)"
+        if res.frame is None and (st.show_gt or st.show_error or st.show_mask):
+            extra += " · the side panes show at frame times (previous / next frame)"
         if "flow_scale_px" in res.info:
             extra += f" · flow to the next frame, saturated at {res.info['flow_scale_px']:.2g} px"
         self.status.content = (f"image {self.images_sent} · t = {res.t:.3f}{where} · {w}x{h} · "
@@ -250,8 +264,9 @@ class ViewerApp:
 
     def start(self):
         import viser
-        if not port_free(self.host, self.port):
-            raise EndowaveError(f"port {self.port} is already in use on {self.host}; pick another with --port")
+        problem = port_problem(self.host, self.port)
+        if problem:
+            raise EndowaveError(problem)
         # viser prints its own address banner unconditionally; we print one line of ours instead
         with contextlib.redirect_stdout(io.StringIO()):
             server = viser.ViserServer(host=self.host, port=self.port, label="endowave-cl", verbose=False)

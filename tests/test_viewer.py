@@ -111,6 +111,8 @@ def test_port_free_sees_a_listening_socket():
         port = s.getsockname()[1]
         assert not port_free("127.0.0.1", port)
     assert port_free("127.0.0.1", port)
+    from endowave_cl.viewer_app import port_problem
+    assert "cannot resolve" in port_problem("no-such-host.invalid", port)
 
 
 def test_slider_marks_label_a_few_frames():

@@ -276,5 +276,24 @@ def test_slider_streams_the_render_at_that_time(tiny_run, rt, browser_page):
         assert changed > 0.5 * truth_gap            # the streamed image changed with the slider
         assert before < MATCH and err1 < MATCH      # and is the render at that time (JPEG + scaling)
         assert err1 < 0.25 * err0                   # not the one before
+
+        # tick "ground truth beside" in the page: at this frame time the image becomes the 2 x 2
+        # grid, the training frame top right
+        n = session.images_sent
+        page.get_by_text("ground truth beside").click()
+        _wait_for_image(page, n + 1)
+        session = next(iter(app.sessions.values()))
+        assert session.last.frame == 9 and session.last.image.shape[:2] == (256, cam1.width)
+        from endowave_cl.viewer import PANE_GAP, _fit
+        pw, ph = session.last.camera.width, session.last.camera.height
+        gt_cell = session.last.image[:ph, pw + PANE_GAP:]
+        want = _fit((model.scene.frames[9].image * 255 + 0.5).astype(np.uint8), gt_cell.shape[1], ph)
+        rows = slice(ph // 4, ph)                                  # below the pane's label
+        assert np.abs(gt_cell[rows].astype(int) - want[rows].astype(int)).mean() < 1.0
+        import cv2
+        streamed = cv2.resize(session.last.image.astype(np.float32) / 255, size, interpolation=cv2.INTER_LINEAR)
+        shot2, err2 = _settled_shot(page, streamed)
+        page.screenshot(path=str(_artefact_dir() / "viewer_t1_ground_truth.png"))
+        assert err2 < MATCH, err2                   # the page shows the grid that was streamed
     finally:
         app.stop()

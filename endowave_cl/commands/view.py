@@ -74,10 +74,11 @@ def run(args) -> int:
     from ..run_io import load_run
     from ..runtime import get_runtime
     from ..viewer import ViewerModel
-    from ..viewer_app import ViewerApp, port_free
+    from ..viewer_app import ViewerApp, port_problem
     # the port is checked before the (slower) model load so a taken port is reported at once
-    if not port_free(args.host, args.port):
-        raise EndowaveError(f"port {args.port} is already in use on {args.host}; pick another with --port")
+    problem = port_problem(args.host, args.port)
+    if problem:
+        raise EndowaveError(problem)
     r = load_run(run_dir, args.scene)
     rt = get_runtime(getattr(args, "device", None))
     model = ViewerModel(r, rt)
