@@ -73,7 +73,6 @@ class Session:
     def __init__(self, app: "ViewerApp", client):
         self.app, self.client, self.model = app, client, app.model
         m = self.model
-        self.state = ViewState(height=int(DEFAULT_RESOLUTION))
         self.dirty = threading.Event()
         self.closed = False
         self.have_camera = False
@@ -117,6 +116,11 @@ class Session:
         self.prev.on_click(lambda _: self.step_frame(-1))
         self.next.on_click(lambda _: self.step_frame(+1))
         client.camera.on_update(self._on_camera)
+        try:     # the browser's first camera message may have come before the callback was attached
+            client.camera.update_timestamp      # asserts until a camera message has arrived
+            self._on_camera(client.camera)
+        except AssertionError:
+            pass
         self.thread = threading.Thread(target=self._loop, name=f"view-render-{client.client_id}", daemon=True)
         self.thread.start()
 
