@@ -148,7 +148,7 @@ def test_serves_prints_address_and_stops_on_ctrl_c(tiny_run, tmp_path):
             p.kill()
             p.wait()
     assert p.returncode == 0, err
-    assert "stopped" in out and "Traceback" not in err
+    assert out.splitlines()[-1:] == ["stopped"] and "Traceback" not in err, (out, err)
 
 
 # ---------------------------------------------------------------------------------------------
