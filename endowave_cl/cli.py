@@ -23,9 +23,10 @@ COMMANDS = {
     "eval": "evaluate a trained run (PSNR, SSIM, LPIPS, FPS)",
     "export": "export a trained model at time t as a 3DGS PLY",
     "batch": "run a manifest of scenes (flow/train/eval/render/export) locally or on a Ray cluster",
+    "view": "look at a trained run in a web browser: scrub time, orbit (needs the [viewer] extra)",
 }
 
-DEVICE_COMMANDS = {"devices", "train", "render", "eval"}  # the ones that run OpenCL kernels
+DEVICE_COMMANDS = {"devices", "train", "render", "eval", "view"}  # the ones that run OpenCL kernels
 
 
 def _available():
