@@ -39,6 +39,8 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     from .lpips import lpips_available
     from .metrics import frame_scores
     from .render import render
+    if not (isinstance(fps_runs, int) and fps_runs >= 0):
+        raise ValueError(f"evaluate_run: fps_runs must be an integer >= 0 (0: no FPS), got {fps_runs!r}")
     use_lpips = bool(with_lpips and lpips_available())
     flow_refs = flow_references(scene)
     rows = []

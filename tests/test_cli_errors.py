@@ -113,11 +113,17 @@ def test_one_frame_scene_is_refused(tiny_scene, tmp_path):
                     "1 frame(s)", "at least 2 frames")
 
 
-def test_render_export_bad_arguments(tiny_scene, tmp_path):
-    run = tmp_path / "run"
+@pytest.fixture(scope="module")
+def tiny_run(tiny_scene, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
     r = _cli("train", str(tiny_scene), "--out", str(run), "--iterations", "2", "--quiet", "--no-flow",
              "--set", "init_points=200")
     assert r.returncode == 0, r.stderr
+    return run
+
+
+def test_render_export_bad_arguments(tiny_run, tmp_path):
+    run = tiny_run
     _one_line_error(_cli("render", str(run), "--fps", "0"), "--fps must be a positive number")
     (tmp_path / "adir").mkdir()
     _one_line_error(_cli("export", str(run), "--out", str(tmp_path / "adir")), "adir: is a folder")
@@ -135,3 +141,85 @@ def test_unexpected_exception_is_one_line(monkeypatch, capsys):
     assert cli.main(["export", "somewhere"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("endowave-cl export: error: unexpected ZeroDivisionError") and len(err.splitlines()) == 1
+
+
+# ------------------------------------------------------------------ poses, image sizes, eval
+def _scene_copy(tiny_scene, tmp_path):
+    d = tmp_path / "scene"
+    shutil.copytree(tiny_scene, d)
+    return d
+
+
+@pytest.mark.parametrize("damage,words", [
+    ("zero", ["poses_bounds.npy (row 4)", "not orthonormal"]),
+    ("singular", ["poses_bounds.npy (row 4)", "not orthonormal"]),
+    ("tiny", ["poses_bounds.npy (row 4)", "not orthonormal"]),
+    ("mirror", ["poses_bounds.npy (row 4)", "determinant -1"]),
+    ("text", ["poses_bounds.npy", "row 4 holds 'x1'"]),
+])
+def test_bad_pose_rows_are_one_line(tiny_scene, tmp_path, damage, words):
+    import numpy as np
+    scene = _scene_copy(tiny_scene, tmp_path)
+    arr = np.load(scene / "poses_bounds.npy")
+    R = {"zero": np.zeros((3, 3)), "singular": np.array([[1.0, 0, 0], [0, 1, 0], [0, 1, 0]]),
+         "tiny": np.eye(3) * 1e-9, "mirror": np.diag([-1.0, 1, 1]), "text": np.eye(3)}[damage]
+    pose = arr[4, :15].reshape(3, 5)
+    pose[:, :3] = R
+    arr[4, :15] = pose.reshape(-1)
+    if damage == "text":
+        arr = arr.astype(str)
+        arr[4, 0] = "x1"
+    np.save(scene / "poses_bounds.npy", arr)
+    run = tmp_path / "run"
+    _one_line_error(_cli("train", str(scene), "--out", str(run), "--quiet", "--no-flow"), *words)
+    assert not run.exists()
+
+
+def test_odd_first_image_is_named(tiny_scene, tmp_path):
+    import cv2
+    scene = _scene_copy(tiny_scene, tmp_path)
+    first = scene / "images" / "000000.png"
+    cv2.imwrite(str(first), cv2.resize(cv2.imread(str(first)), (40, 30)))
+    _one_line_error(_cli("train", str(scene), "--out", str(tmp_path / "run"), "--quiet", "--no-flow"),
+                    str(first), "size 40x30 disagrees with the 64x48 of the other images")
+
+
+def test_eval_fps_runs_and_one_frame_scene(tiny_scene, tiny_run, tmp_path):
+    import json
+
+    import numpy as np
+    _one_line_error(_cli("eval", str(tiny_run), "--fps-runs", "-3"), "--fps-runs must be >= 0, got -3")
+    r = _cli("eval", str(tiny_run), "--fps-runs", "0", "--no-baselines")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tiny_run / "eval.json").read_text())["fps"] is None
+    one = tmp_path / "one"
+    for sub in ("images", "depth", "masks"):
+        (one / sub).mkdir(parents=True)
+        first = sorted((tiny_scene / sub).glob("*.png"))[0]
+        shutil.copy(first, one / sub / first.name)
+    np.save(one / "poses_bounds.npy", np.load(tiny_scene / "poses_bounds.npy")[:1])
+    shutil.copy(tiny_scene / "scene.json", one / "scene.json")
+    _one_line_error(_cli("eval", str(tiny_run), "--scene", str(one)), str(one), "1 frame(s)",
+                    "eval needs at least 2 frames")
+
+
+def test_eval_json_is_strict_when_psnr_is_infinite(tiny_run, monkeypatch, capsys):
+    """All-black frames rendered exactly give PSNR inf: eval.json stays strict JSON (null)."""
+    import json
+
+    from endowave_cl import cli, metrics
+    real = metrics.frame_scores
+
+    def exact(pred, gt, mask=None, with_lpips=False):
+        out = real(pred, gt, mask, with_lpips)
+        out.update(psnr=float("inf"), psnr_masked=float("inf"))
+        return out
+    monkeypatch.setattr(metrics, "frame_scores", exact)
+    assert cli.main(["eval", str(tiny_run), "--fps-runs", "0"]) == 0, capsys.readouterr().err
+    text = (tiny_run / "eval.json").read_text()
+
+    def refuse(word):
+        raise AssertionError(f"eval.json holds {word}")
+    m = json.loads(text, parse_constant=refuse)
+    assert m["psnr"] is None and m["per_frame"][0]["model"]["psnr"] is None
+    assert m["ssim"] is not None

@@ -116,3 +116,55 @@ def test_missing_images_folder(tmp_path):
     _fails(tmp_path, tmp_path / "images", "missing")
     with pytest.raises(DataError, match="scene folder not found"):
         load_scene(tmp_path / "nope")
+
+
+# ------------------------------------------------------------------ issue #14: poses and sizes
+def _set_rotation(scene, row, R):
+    arr = np.load(scene / "poses_bounds.npy")
+    pose = arr[row, :15].reshape(3, 5)
+    pose[:, :3] = R
+    arr[row, :15] = pose.reshape(-1)
+    np.save(scene / "poses_bounds.npy", arr)
+
+
+@pytest.mark.parametrize("R,words", [
+    (np.zeros((3, 3)), "not orthonormal"),
+    (np.array([[1.0, 0, 0], [0, 1, 0], [1, 0, 0]]), "not orthonormal"),      # singular
+    (np.eye(3) * 1e-9, "not orthonormal"),
+    (np.eye(3) * 1.01, "not orthonormal"),
+    (np.diag([1.0, 1.0, -1.0]), "determinant -1"),                          # a mirror
+])
+def test_bad_pose_rotation_names_the_row(scene, R, words):
+    _set_rotation(scene, 2, R)
+    _fails(scene, f"{scene / 'poses_bounds.npy'} (row 2)", words)
+
+
+def test_rotation_within_tolerance_is_accepted(scene):
+    c, s = np.cos(0.3), np.sin(0.3)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).astype(np.float32).astype(np.float64)
+    _set_rotation(scene, 1, R)
+    load_scene(scene)
+
+
+def test_poses_stored_as_strings(scene):
+    arr = np.load(scene / "poses_bounds.npy").astype(str)
+    np.save(scene / "poses_bounds.npy", arr)
+    load_scene(scene)                     # numbers written as text are still numbers
+    arr[3, 5] = "abc"
+    np.save(scene / "poses_bounds.npy", arr)
+    _fails(scene, scene / "poses_bounds.npy", "row 3 holds 'abc', not a number")
+    np.save(scene / "poses_bounds.npy", np.zeros((4, 17), complex))
+    _fails(scene, scene / "poses_bounds.npy", "poses must be stored as floats")
+
+
+def test_nan_pose_names_the_row(scene):
+    arr = np.load(scene / "poses_bounds.npy")
+    arr[2, 7] = np.nan
+    np.save(scene / "poses_bounds.npy", arr)
+    _fails(scene, scene / "poses_bounds.npy", "row 2 contains NaN")
+
+
+def test_odd_first_image_is_blamed_not_depth(scene):
+    f = scene / "images" / "000000.png"
+    save_png(f, np.zeros((24, 30, 3), np.uint8))
+    _fails(scene, f, "size 30x24 disagrees with the 32x24 of the other images")

@@ -7,17 +7,19 @@ end-point error of the flow the model renders, beside DIS's on the same pixels.
 
 Writes RUN/eval.json (every figure, per frame too), RUN/eval_per_frame.png (PSNR of each test
 frame over time, model and baselines) and RUN/eval_worst.png (the model's worst test frame:
-ground truth | render | error, mean |error| over RGB with full scale 0.25), each atomically."""
+ground truth | render | error, mean |error| over RGB with full scale 0.25), each atomically.
+eval.json is strict JSON: a non-finite figure (PSNR inf where a frame is rendered exactly, e.g. all
+black) is written as null."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 
 def add_arguments(p) -> None:
     p.add_argument("run", help="run folder written by endowave-cl train")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
-    p.add_argument("--fps-runs", type=int, default=10, help="timed renders for the FPS figure (0: skip)")
+    p.add_argument("--fps-runs", type=int, default=10,
+                   help="timed renders for the FPS figure, >= 0 (default 10; 0: skip, fps is null in eval.json)")
     p.add_argument("--no-baselines", action="store_true",
                    help="skip the neighbour-mean and DIS-interpolation baselines")
 
@@ -50,7 +52,8 @@ def table(m: dict) -> str:
 
 
 def run(args) -> int:
-    from ..atomic import write_bytes_atomic
+    from ..atomic import write_json_atomic
+    from ..data.scene import TEST_EVERY
     from ..errors import EndowaveError
     from ..evaluation import evaluate_run, write_figures
     from ..gaussians import upload
@@ -60,7 +63,9 @@ def run(args) -> int:
         raise EndowaveError(f"--fps-runs must be >= 0, got {args.fps_runs}")
     r = load_run(args.run, args.scene)
     if not r.scene.test_indices:
-        raise EndowaveError(f"{r.scene.path}: the scene has no test frame to evaluate")
+        n = len(r.scene.frames)
+        raise EndowaveError(f"{r.scene.path}: {n} frame(s) and no test frame to evaluate (test frames are "
+                            f"1, {1 + TEST_EVERY}, {1 + 2 * TEST_EVERY}, ...: eval needs at least 2 frames)")
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
     m = evaluate_run(rt, params, r.scene, args.fps_runs, with_baselines=not args.no_baselines)
@@ -73,6 +78,6 @@ def run(args) -> int:
     print(f"{m['test_frames']} test frames of {title}; render FPS {fps} on {rt.name}")
     print(table(m))
     path = Path(args.run) / "eval.json"
-    write_bytes_atomic(path, json.dumps(m, indent=1).encode())
+    write_json_atomic(path, m)      # strict JSON: PSNR inf (a frame rendered exactly) and NaN become null
     print(f"wrote {path}, {m['per_frame_plot']}, {m['worst_frame_image']} (worst test frame {m['worst_frame']})")
     return 0

@@ -41,10 +41,56 @@ def read_poses_bounds(path) -> np.ndarray:
         raise DataError(f"{path}: not a readable .npy file ({e})") from None
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
         raise DataError(f"{path}: expected an array of shape (N, 17), got {arr.shape}")
-    arr = arr.astype(np.float64)
-    if not np.all(np.isfinite(arr)):
-        raise DataError(f"{path}: contains NaN or infinite values")
+    arr = _as_float(arr, path)
+    bad = ~np.all(np.isfinite(arr), axis=1)
+    if bad.any():
+        raise DataError(f"{path}: row {int(np.argmax(bad))} contains NaN or infinite values")
+    for i in range(arr.shape[0]):
+        check_rotation(arr[i, :15].reshape(3, 5)[:, :3], f"{path} (row {i})")
     return arr
+
+
+# How far R^T R may be from the identity (max abs entry) and det R from +1.  Poses stored as float32
+# (COLMAP / LLFF) are orthonormal to ~1e-7; a pose matrix scaled or sheared by more than this is a
+# broken file, not rounding, and would silently scale or mirror the scene.
+ROTATION_TOL = 1e-3
+
+
+def check_rotation(R: np.ndarray, source) -> None:
+    """DataError naming ``source`` unless R (3x3) is a proper rotation within ROTATION_TOL."""
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if not err <= ROTATION_TOL:
+        raise DataError(f"{source}: the pose rotation is not orthonormal (|R^T R - I| = {err:.3g}, "
+                        f"det {det:.3g}; tolerance {ROTATION_TOL:g})")
+    if not abs(det - 1.0) <= ROTATION_TOL:
+        raise DataError(f"{source}: the pose rotation has determinant {det:.3g}, not +1 (a reflection)")
+
+
+def _as_float(arr: np.ndarray, path: Path) -> np.ndarray:
+    """float64 copy of a numeric array, or of one stored as text holding numbers; else DataError
+    naming the first row that is not numbers."""
+    kind = arr.dtype.kind
+    if kind in "iuf":
+        return arr.astype(np.float64)
+    if kind in "US":
+        for i, row in enumerate(arr):
+            try:
+                row.astype(np.float64)
+            except ValueError:
+                bad = next(v.item() for v in row if not _is_number(v))
+                raise DataError(f"{path}: row {i} holds {bad!r}, not a number "
+                                f"(poses are stored as text, dtype {arr.dtype})") from None
+        return arr.astype(np.float64)
+    raise DataError(f"{path}: row 0 is not numbers (dtype {arr.dtype}; poses must be stored as floats)")
+
+
+def _is_number(v) -> bool:
+    try:
+        float(v)
+        return True
+    except ValueError:
+        return False
 
 
 def llff_to_viewmat(pose34: np.ndarray) -> np.ndarray:

@@ -116,10 +116,35 @@ def _optional_files(folder: Path, n: int, what: str):
     return files
 
 
-def _check_size(arr: np.ndarray, path: Path, width: int, height: int):
+def _check_size(arr: np.ndarray, path: Path, width: int, height: int, of: str = "the images"):
     if arr.shape[:2] != (height, width):
         raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} disagrees with the "
-                        f"{width}x{height} of the first image")
+                        f"{width}x{height} of {of}")
+
+
+def _png_size(path: Path):
+    """(width, height) from a PNG's IHDR chunk without decoding it; None if not a readable PNG."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _common_size(images) -> tuple:
+    """(width, height) most of the images have (ties: the earliest), so that an odd one out is
+    blamed whichever frame it is, the first included.  PNG sizes come from the header; other
+    files (or damaged headers) are decoded."""
+    from collections import Counter
+    sizes = []
+    for p in images:
+        size = _png_size(p)
+        sizes.append(size if size is not None else read_rgb(p).shape[1::-1])
+    counts = Counter(sizes)
+    return max(sizes, key=lambda s: (counts[s], -sizes.index(s)))
 
 
 def clip_depth(depth: np.ndarray, percentiles) -> np.ndarray:
@@ -159,13 +184,13 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
     if not downscale >= 1:
         raise DataError(f"{path}: downscale must be >= 1, got {downscale}")
     info = _read_scene_json(path)
-    poses = read_poses_bounds(path / "poses_bounds.npy")
     img_dir = path / "images"
     if not img_dir.is_dir():
         raise DataError(f"{img_dir}: missing (the scene needs an images/ folder)")
     images = list_images(img_dir)
     if not images:
         raise DataError(f"{img_dir}: no .png/.jpg images")
+    poses = read_poses_bounds(path / "poses_bounds.npy")
     n = len(images)
     if poses.shape[0] != n:
         raise DataError(f"{path / 'poses_bounds.npy'}: {poses.shape[0]} poses but {n} images in "
@@ -184,14 +209,14 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
     if layout == "auto" and "hwf_layout" in info:
         layout = info["hwf_layout"]
 
+    # the size most images share is the scene's: an image of another size is named (whichever
+    # frame it is) rather than the first depth map or mask compared with it
+    width, height = _common_size(images)
     frames = []
-    width = height = None
     resolved_layout = None
     for i, img_path in enumerate(images):
         image = read_rgb(img_path)
-        if width is None:
-            height, width = image.shape[:2]
-        _check_size(image, img_path, width, height)
+        _check_size(image, img_path, width, height, "the other images" if n > 1 else "the images")
         depth = mask = None
         if depth_files is not None:
             depth = read_depth_raw(depth_files[i])
