@@ -13,7 +13,12 @@ from typing import Any, Dict, Mapping, Optional
 from ..errors import EndowaveError
 
 
-INIT_POINTS_PER_PIXEL = 1.0   # initial Gaussians per pixel of one frame (init_points = 0)
+# Density relative to the image, so that one default suits 160x128 and 640x512: initial Gaussians
+# (init_points = 0) and the densification cap (max_gaussians = 0) per pixel of one frame.  On the
+# pulling frames more Gaussians than ~1 per pixel cost steps without paying back (docs/QUALITY.md);
+# the demo's tuned 40k cap at 160x128 is 2 per pixel.
+INIT_POINTS_PER_PIXEL = 1.0
+MAX_GAUSSIANS_PER_PIXEL = 2.0
 
 
 @dataclass
@@ -38,7 +43,8 @@ class TrainConfig:
                                     # +0.5 dB over 2 spacings after 300 demo steps (24.7 vs 24.2 dB)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
-    max_gaussians: int = 300000     # densification stops adding Gaussians beyond this count
+    max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
+                                    # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
     sh_degree: int = 3
     temporal_freqs: int = 2
@@ -85,11 +91,13 @@ class TrainConfig:
     use_flow: bool = True
     use_wavelet: bool = True
 
-    def initial_points(self, width: int, height: int) -> int:
-        """init_points, or when it is 0 the per-pixel default for width x height frames."""
-        if self.init_points > 0:
-            return int(self.init_points)
-        return max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
+    def resolve_density(self, width: int, height: int) -> None:
+        """Replace init_points = 0 and max_gaussians = 0 by their per-pixel defaults for width x
+        height frames (the run's config.json then records the numbers used)."""
+        if self.max_gaussians <= 0:
+            self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
+        if self.init_points <= 0:
+            self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
 
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
@@ -154,7 +162,7 @@ RANGES = {
     "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _AT_LEAST_1,
+    "max_gaussians": _NON_NEGATIVE,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

@@ -48,6 +48,7 @@ class Trainer:
         from .run_folder import RunSession
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
+        cfg.resolve_density(scene.width, scene.height)   # per-pixel defaults of init_points, max_gaussians
         self.run_dir = Path(run_dir)
         # creates and locks the run folder; config.json is written by run.start once the model is ready
         self._run = RunSession(self.run_dir, log, resume)
@@ -73,7 +74,7 @@ class Trainer:
         else:
             from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
-                               max_points=cfg.initial_points(scene.width, scene.height), seed=cfg.seed,
+                               max_points=cfg.init_points, seed=cfg.seed,
                                time_scale=cfg.init_time_scale,
                                flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
