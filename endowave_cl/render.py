@@ -16,9 +16,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from .camera import Camera
-
-CHANNELS = 6  # r, g, b, depth, flow_x, flow_y
-RGB, DEPTH, FLOW = slice(0, 3), 3, slice(4, 6)
+from .layout import CHANNELS, DEPTH, FLOW, RGB  # noqa: F401  (CHANNELS: read from here by callers)
 
 
 @dataclass

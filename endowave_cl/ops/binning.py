@@ -13,18 +13,13 @@ from typing import Optional, Tuple
 import numpy as np
 import pyopencl.array as cla
 
+from endowave_cl.layout import TILE, tile_grid  # noqa: F401  (tile_grid: part of this module's API)
 from endowave_cl.ops.scan import exclusive_scan_with_total
 from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
 from endowave_cl.runtime import round_up
 
-TILE = 16        # pixels per tile side (TILE in cl/common.h)
 DEPTH_BITS = 32  # low key bits: the float32 depth's bit pattern
 LOCAL = 64       # work-group size of the one-item-per-element kernels here
-
-
-def tile_grid(width: int, height: int) -> Tuple[int, int]:
-    """(tiles_x, tiles_y) covering a width x height image."""
-    return (int(width) + TILE - 1) // TILE, (int(height) + TILE - 1) // TILE
 
 
 def key_bits(n_tiles: int) -> int:

@@ -3,11 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-TILE = 16
-
-
-def tile_grid(width: int, height: int, tile: int = TILE):
-    return (width + tile - 1) // tile, (height + tile - 1) // tile
+from ..layout import TILE, tile_grid  # noqa: F401  (re-exported: tests and tools take them from here)
 
 
 def bin_gaussians_ref(rect: np.ndarray, depth: np.ndarray, radius: np.ndarray, tiles_x: int):

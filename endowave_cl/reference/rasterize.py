@@ -21,11 +21,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .binning import TILE, tile_grid
-
-ALPHA_MAX = 0.99          # alpha clamp (3DGS): keeps 1 - alpha >= 0.01 so T can be divided back
-ALPHA_MIN = 1.0 / 255.0   # contributions below one 8-bit level are skipped
-T_STOP = 1e-4             # a pixel stops once its transmittance would fall below this
+from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid  # noqa: F401  (constants: endowave_cl/layout.py)
 
 
 def _as_t(x, dtype=torch.float32):

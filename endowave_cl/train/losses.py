@@ -35,13 +35,11 @@ from typing import Callable, Dict, Mapping, Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-SSIM_WINDOW = 11       # 3DGS: 11 x 11 Gaussian window ...
-SSIM_SIGMA = 1.5       # ... of standard deviation 1.5 pixels
-SSIM_C1 = 0.01 ** 2    # (K1 L)^2 with K1 = 0.01, data range L = 1
-SSIM_C2 = 0.03 ** 2    # (K2 L)^2 with K2 = 0.03
+from .loss_constants import FLOW_HUBER_DELTA, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401
 
 
 def _gaussian_window_1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    # loss_constants.gaussian_window_1d in torch, computed in the images' dtype
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
     g = torch.exp(-x * x / (2 * sigma * sigma))
     return g / g.sum()  # [size]; the 2D window is its outer product
@@ -114,9 +112,6 @@ def depth_loss(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask: Optional[
     """L1 over pixels with gt_depth > 0 and mask (depth [H, W], as composited; see module doc)."""
     valid = (gt_depth > 0).to(pred_depth.dtype) * _mask_like(mask, pred_depth)
     return _masked_mean((pred_depth - gt_depth).abs(), valid)
-
-
-FLOW_HUBER_DELTA = 4.0   # pixels: the flow error beyond which the flow loss grows linearly
 
 
 def flow_loss(pred_flow: torch.Tensor, gt_flow: torch.Tensor, valid: Optional[torch.Tensor] = None,
