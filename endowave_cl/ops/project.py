@@ -12,11 +12,10 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
+from ..layout import CAM_SIZE, CHANNELS, tile_grid
 from ..runtime import round_up
 
-TILE = 16
 WORK_GROUP = 64        # work-items per group; one work-item per Gaussian
-CAM_SIZE = 20          # floats in the camera buffer (layout: CAM_* in cl/project4d_common.h)
 
 
 @dataclass
@@ -32,20 +31,6 @@ class Projected:
 
     def __len__(self) -> int:
         return int(self.radius.shape[0])
-
-
-_POOLS: Dict[int, object] = {}
-
-
-def _allocator(rt):
-    """A memory pool per runtime: output and gradient buffers are reused across calls once the
-    previous call's arrays are freed (a fresh 60 MB buffer per call costs more than the kernel on
-    PoCL, which allocates and faults in new buffers on first use)."""
-    pool = _POOLS.get(id(rt))
-    if pool is None:
-        from pyopencl.tools import ImmediateAllocator, MemoryPool
-        pool = _POOLS[id(rt)] = MemoryPool(ImmediateAllocator(rt.queue))
-    return pool
 
 
 def _dims(params):
@@ -81,7 +66,7 @@ def camera_buffer(rt, camera) -> cla.Array:
 
 
 def _tiles(camera):
-    return (camera.width + TILE - 1) // TILE, (camera.height + TILE - 1) // TILE
+    return tile_grid(camera.width, camera.height)
 
 
 def _check_params(params, n):
@@ -92,11 +77,11 @@ def _check_params(params, n):
 
 
 def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Optional[float] = None,
-              channels: int = 6) -> Projected:
+              channels: int = CHANNELS) -> Projected:
     """Project every Gaussian at time t (flow to t_flow when given); see docs/ARCHITECTURE.md."""
     n, nt, K, degree = _dims(params)
     q = rt.queue
-    al = _allocator(rt)
+    al = rt.pool()
     f32, i32 = np.float32, np.int32
     out = Projected(
         means2d=cla.empty(q, (n, 2), f32, allocator=al), conic=cla.empty(q, (n, 3), f32, allocator=al),
@@ -130,7 +115,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     """
     n, nt, K, degree = _dims(params)
     q = rt.queue
-    al = _allocator(rt)
+    al = rt.pool()
     shapes = {"v_means": (n, 4), "v_scales": (n, 4), "v_quat_l": (n, 4), "v_quat_r": (n, 4),
               "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
     grads = {k: cla.empty(q, s, np.float32, allocator=al) for k, s in shapes.items()}

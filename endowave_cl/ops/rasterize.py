@@ -2,25 +2,23 @@
 
 Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl, and the explicit-SIMD
 cl/rasterize_vec.cl, cl/rasterize_vec_bwd.cl for CPU drivers (see ``raster_variant``).  References (same names):
-endowave_cl/reference/rasterize.py, whose constants (ALPHA_MAX, ALPHA_MIN, T_STOP) are passed to the
-kernels as build options so both sides use the same values.
+endowave_cl/reference/rasterize.py.  The compositing constants (ALPHA_MAX, ALPHA_MIN, T_STOP) come
+from endowave_cl/layout.py and are passed to the kernels as build options, so both sides use the
+same values.
 """
 from __future__ import annotations
 
 import os
 import sys
-import weakref
 from dataclasses import dataclass
 from typing import Dict
 
 import numpy as np
 
 from ..errors import EndowaveError
-from ..reference.rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP
+from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid
 from ..probe import ENV_PLANT
 from ..runtime import ENV_CACHE_DIR, round_up
-
-TILE = 16
 
 
 def _f32_literal(x: float) -> str:
@@ -65,9 +63,6 @@ class RasterChoice:
         return "scalar kernel" if self.variant == "scalar" else f"vector kernel, {self.vw} lanes"
 
 
-_CHOICES: Dict[tuple, RasterChoice] = {}
-
-
 def _forced():
     v = os.environ.get(ENV_VARIANT, "").strip().lower()
     if v and v not in VARIANTS:
@@ -87,8 +82,9 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
     forced_v, forced_w, forced_bw = _forced()
-    key = (id(rt), int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR), os.environ.get(ENV_PLANT))
-    ch = _CHOICES.get(key)
+    key = ("raster_choice", int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR),
+           os.environ.get(ENV_PLANT))
+    ch = rt.cache.get(key)
     if ch is None:
         ch, notes, failed = explain_choice(rt, C)
         if ch is None:
@@ -100,7 +96,7 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
             print(f"endowave-cl: {rt.name}: rasterizer runs the {ch.describe()} ({'; '.join(failed)}); "
                   f"verdicts in {probe_dir()}, {ENV_VEC_WIDTH} / {ENV_VARIANT} force one",
                   file=sys.stderr, flush=True)
-        _CHOICES[key] = ch
+        rt.cache[key] = ch
     return ch
 
 
@@ -231,23 +227,14 @@ class RasterOut:
     rec: "object" = None  # [N, REC4, 4] float32 records of the vector variant (reused by its adjoint)
 
 
-_DUMMY = weakref.WeakKeyDictionary()   # Runtime -> 4-byte buffer
-
-
 def _buf(rt, arr):
-    """arr's buffer, or a 4-byte dummy for empty/absent arrays (pyopencl gives empty ones no buffer)."""
-    if arr is not None and arr.size > 0:
-        return arr.data
-    d = _DUMMY.get(rt)
-    if d is None:
-        d = rt.cl.Buffer(rt.ctx, rt.cl.mem_flags.READ_WRITE, 4)
-        _DUMMY[rt] = d
-    return d
+    """arr's buffer, or the runtime's placeholder for empty/absent arrays (pyopencl gives empty
+    ones no buffer)."""
+    return rt.buf(arr)
 
 
 def _grid(width: int, height: int):
-    tiles_x = (width + TILE - 1) // TILE
-    tiles_y = (height + TILE - 1) // TILE
+    tiles_x, tiles_y = tile_grid(width, height)
     return tiles_x, tiles_y, (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
 
 

@@ -15,14 +15,13 @@ but a handful of loss sums crosses to the host.
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from ..runtime import round_up
-from .losses import FLOW_HUBER_DELTA, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window_1d
+from .loss_constants import FLOW_HUBER_DELTA, gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -65,19 +64,11 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     return t
 
 
-_WINDOWS = weakref.WeakKeyDictionary()   # Runtime -> the SSIM window on its device
-
-
 def _window(rt) -> object:
     """The SSIM window (losses.py's 1D Gaussian) as a float32 device array, cached per runtime."""
-    w = _WINDOWS.get(rt)
-    if w is None:
-        import pyopencl.array as cla
-        import torch
-        g = _gaussian_window_1d(SSIM_WINDOW, SSIM_SIGMA, torch.float64, "cpu").numpy()
-        w = cla.to_device(rt.queue, g.astype(np.float32))  # symmetric: its own reverse
-        _WINDOWS[rt] = w
-    return w
+    import pyopencl.array as cla
+    # symmetric: its own reverse
+    return rt.cached("ssim.window", lambda: cla.to_device(rt.queue, gaussian_window_1d().astype(np.float32)))
 
 
 def _blur(rt, x, window) -> object:

@@ -27,21 +27,9 @@ GROUP = 64            # 1-D work-group multiple for the element-wise kernels
 RED_LOCAL = 64        # work-items per group in sumsq_partial (power of two)
 RED_GROUPS = 64       # groups per sumsq_partial launch (one slot = RED_GROUPS partial sums)
 
-_FILTER_CACHE: Dict[Tuple[int, int], Dict[str, cla.Array]] = {}
-_POOLS: Dict[int, object] = {}
-
-
-def _allocator(rt):
-    pool = _POOLS.get(id(rt))
-    if pool is None:
-        import pyopencl.tools as clt
-        pool = clt.MemoryPool(clt.ImmediateAllocator(rt.queue))
-        _POOLS[id(rt)] = pool
-    return pool
-
 
 def _empty(rt, shape) -> cla.Array:
-    return cla.empty(rt.queue, tuple(int(s) for s in shape), np.float32, allocator=_allocator(rt))
+    return cla.empty(rt.queue, tuple(int(s) for s in shape), np.float32, allocator=rt.pool())
 
 
 def _check(x: cla.Array, name: str) -> None:
@@ -93,12 +81,8 @@ def _filter_array(rt, f) -> Tuple[cla.Array, int]:
 
 def device_filters(rt, q: int) -> Dict[str, cla.Array]:
     """h0, h1, g of design_filters(q) as float32 device arrays (cached per runtime and q)."""
-    key = (id(rt), int(q))
-    d = _FILTER_CACHE.get(key)
-    if d is None:
-        d = {k: cla.to_device(rt.queue, v.astype(np.float32)) for k, v in design_filters(q).items()}
-        _FILTER_CACHE[key] = d
-    return d
+    return rt.cached(("wavelet.filters", int(q)), lambda: {
+        k: cla.to_device(rt.queue, v.astype(np.float32)) for k, v in design_filters(q).items()})
 
 
 # ---------------------------------------------------------------------------------------------
