@@ -156,7 +156,7 @@ def test_oclgrind_transform_and_adjoint_13x11x3(rt):
     ref = F.decompose(x, q, 2)
     y = [{b: np.random.default_rng(j * 4 + i).standard_normal(ref[j][b].shape).astype(np.float32)
           for i, b in enumerate(F.BANDS)} for j in range(2)]
-    ATy = ops.v_decompose(rt, [{b: dev(rt, y[j][b]) for b in F.BANDS} for j in range(2)], x.shape, q).get()
+    ATy = ops.decompose_bwd(rt, [{b: dev(rt, y[j][b]) for b in F.BANDS} for j in range(2)], x.shape, q).get()
     lhs = 0.0
     for j in range(2):
         for b in F.BANDS:
@@ -177,14 +177,14 @@ def test_oclgrind_loss_and_grad_with_mask_13x11x3(rt):
 
 @pytest.mark.oclgrind
 def test_oclgrind_short_axes_reflect_repeatedly(rt):
-    # n = 1, 2, 3 < R: every reflection branch of conv_axis / v_conv_axis, plus resampling
+    # n = 1, 2, 3 < R: every reflection branch of conv_axis / conv_axis_bwd, plus resampling
     for shape, axis in (((3, 2, 2), 1), ((3, 2, 2), 0), ((1, 2, 1), 0)):
         x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
         y = np.random.default_rng(axis + 5).standard_normal(shape).astype(np.float32)
         f = np.random.default_rng(7).standard_normal(13).astype(np.float32)
         Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
         np.testing.assert_allclose(Ax, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
-        ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis).get()
+        ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get()
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-5)
         rs = ops.resample_axis(rt, dev(rt, x), 2, axis).get()
         np.testing.assert_allclose(rs, F.resample_axis(x, 2, axis), atol=1e-6)
@@ -192,7 +192,7 @@ def test_oclgrind_short_axes_reflect_repeatedly(rt):
 
 @pytest.mark.oclgrind
 def test_oclgrind_conv_interior_runs(rt):
-    # lines long enough for the 8-element interior runs of conv_axis / v_conv_axis (CONV_RUN),
+    # lines long enough for the 8-element interior runs of conv_axis / conv_axis_bwd (CONV_RUN),
     # with a line length that is not a multiple of 8, along both image axes, accumulating
     f = np.random.default_rng(3).standard_normal(13).astype(np.float32)
     for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0)):
@@ -201,5 +201,5 @@ def test_oclgrind_conv_interior_runs(rt):
         Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
         np.testing.assert_allclose(Ax, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
         out = dev(rt, x)
-        ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
+        ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)

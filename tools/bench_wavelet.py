@@ -68,7 +68,7 @@ def main(argv=None):
         rt.finish()
 
     def cl_adjoint():
-        ops.v_decompose(rt, v_coeffs, (H, W, C), cfg.q)
+        ops.decompose_bwd(rt, v_coeffs, (H, W, C), cfg.q)
         rt.finish()
 
     def cl_loss():
@@ -82,7 +82,7 @@ def main(argv=None):
           f"filter taps={2 * __import__('endowave_cl.wavelet.filters', fromlist=['x']).support_radius(cfg.q) + 1}, "
           f"median of {args.runs} runs after {args.warmup} warm-up")
     rows = [("opencl  transform (2-level decompose)", cl_transform),
-            ("opencl  adjoint (v_decompose)", cl_adjoint),
+            ("opencl  adjoint (decompose_bwd)", cl_adjoint),
             ("opencl  loss + gradient (wavelet_loss_and_grad, masked)", cl_loss)]
     if not args.no_torch:
         rr = torch.tensor(r, requires_grad=True)

@@ -376,10 +376,6 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     return grads
 
 
-# The name the architecture uses for the adjoint.
-v_rasterize = rasterize_bwd
-
-
 def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
                              max_radius) -> None:
     """In place on the device, for Gaussians with radius > 0: grad_accum [N] += |v_means2d * (W/2, H/2)|,

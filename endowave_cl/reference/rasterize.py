@@ -11,7 +11,7 @@ last contributor, relative to the tile's range start; 0 when nothing contributed
 ``rasterize_ref`` walks the sorted (tile, depth) list; ``rasterize_dense_ref`` does not use it: for
 each tile it selects every Gaussian whose tile rect holds the tile and orders them by (depth, index).
 Both are differentiable with torch autograd w.r.t. means2d, conic, opac, features (that gives the
-reference adjoint ``v_rasterize_ref``). ``accumulate_densify_stats_ref`` is the numpy reference of
+reference adjoint ``rasterize_bwd_ref``). ``accumulate_densify_stats_ref`` is the numpy reference of
 the densification statistics.
 """
 from __future__ import annotations
@@ -143,10 +143,6 @@ def rasterize_bwd_ref(means2d, conic, opac, features, sorted_values, tile_ranges
     names = ("v_means2d", "v_conic", "v_opac", "v_features")
     return {n: (g.numpy() if g is not None else np.zeros_like(leaf.detach().numpy()))
             for n, g, leaf in zip(names, grads, leaves)}
-
-
-# The name the architecture uses for the adjoint reference.
-v_rasterize_ref = rasterize_bwd_ref
 
 
 def accumulate_densify_stats_ref(v_means2d, radius, width, height, grad_accum, count, max_radius):

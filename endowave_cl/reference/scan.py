@@ -10,7 +10,7 @@ from typing import Tuple
 import numpy as np
 
 
-def exclusive_scan(x: np.ndarray) -> Tuple[np.ndarray, int]:
+def exclusive_scan_ref(x: np.ndarray) -> Tuple[np.ndarray, int]:
     """(offsets [n] int32, total) with offsets[k] = sum_{j<k} x[j] (int32 wrap-around)."""
     x = np.asarray(x, np.int32)
     c = np.cumsum(x, dtype=np.int64)
@@ -20,7 +20,7 @@ def exclusive_scan(x: np.ndarray) -> Tuple[np.ndarray, int]:
     return offsets.astype(np.int32), total
 
 
-def radix_histogram(keys: np.ndarray, shift: int, radix_bits: int, block: int) -> np.ndarray:
+def radix_histogram_ref(keys: np.ndarray, shift: int, radix_bits: int, block: int) -> np.ndarray:
     """[radix, n_blocks] int32: how many keys of each block of ``block`` keys have each digit
     (bits shift .. shift + radix_bits - 1), digit-major as the kernel writes it."""
     radix = 1 << radix_bits
@@ -33,7 +33,7 @@ def radix_histogram(keys: np.ndarray, shift: int, radix_bits: int, block: int) -
     return hist.astype(np.int32)
 
 
-def radix_scatter(keys: np.ndarray, values: np.ndarray, shift: int, radix_bits: int):
+def radix_scatter_ref(keys: np.ndarray, values: np.ndarray, shift: int, radix_bits: int):
     """One stable LSD pass: (keys, values) ordered by the digit at ``shift``, ties in input order."""
     radix = 1 << radix_bits
     digits = (np.asarray(keys, np.uint64) >> np.uint64(shift)) & np.uint64(radix - 1)
