@@ -73,12 +73,6 @@ def wavelet_loss_and_grad(rt, rendered, target, mask=None, config: WaveletConfig
     return loss_and_grad(rt, rendered, target, mask, config.q, config.levels, config.weights)
 
 
-def wavelet_transform(rt, img, config: WaveletConfig = WaveletConfig()):
-    """Device transform of img [H, W, C]: a list over levels of {band: cla.Array [H_j, W_j, C]}."""
-    from .ops import decompose
-    return decompose(rt, img, config.q, config.levels)
-
-
 # ---------------------------------------------------------------------------------------------
 # pure torch (any device, any float dtype; autograd gives the adjoint)
 # ---------------------------------------------------------------------------------------------

@@ -125,16 +125,6 @@ def conv_axis_bwd(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] =
     return out
 
 
-def conv_rows(rt, img: cla.Array, f, out=None) -> cla.Array:
-    """Convolution along W of img [H, W, C] (the paper's *_r)."""
-    return conv_axis(rt, img, f, axis=1, out=out)
-
-
-def conv_cols(rt, img: cla.Array, f, out=None) -> cla.Array:
-    """Convolution along H of img [H, W, C] (the paper's *_c)."""
-    return conv_axis(rt, img, f, axis=0, out=out)
-
-
 def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] = None) -> cla.Array:
     """Resample x along axis by a = (q + 1) / q; that axis becomes resampled_length(n, q) long."""
     _check(x, "x")
