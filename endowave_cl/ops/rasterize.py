@@ -376,6 +376,21 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     return grads
 
 
+def rasterize_projected(rt, proj, binned, width: int, height: int, choice: RasterChoice = None) -> RasterOut:
+    """``rasterize`` of the stage records: proj (ops.project.Projected), binned (ops.binning.Binned)."""
+    return rasterize(rt, proj.means2d, proj.conic, proj.opac, proj.features, binned.sorted_values,
+                     binned.tile_ranges, width, height, choice)
+
+
+def rasterize_projected_bwd(rt, proj, binned, raster: RasterOut, v_out, v_alpha, width: int, height: int,
+                            deterministic: bool = False, choice: RasterChoice = None) -> Dict[str, "object"]:
+    """``rasterize_bwd`` of the stage records (as rasterize_projected); deterministic: a bool, the
+    rects and binning offsets it needs are taken from proj and binned."""
+    return rasterize_bwd(rt, proj.means2d, proj.conic, proj.opac, proj.features, binned.sorted_values,
+                         binned.tile_ranges, width, height, raster, v_out, v_alpha,
+                         deterministic=(proj.rect, binned.offsets) if deterministic else None, choice=choice)
+
+
 def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
                              max_radius) -> None:
     """In place on the device, for Gaussians with radius > 0: grad_accum [N] += |v_means2d * (W/2, H/2)|,
