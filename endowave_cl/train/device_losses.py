@@ -130,7 +130,7 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     parts: Dict[str, float] = {}
     wavelet = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
-        from ..wavelet.loss import wavelet_loss_and_grad
+        from ..wavelet.config import wavelet_loss_and_grad
         rgb = cla.empty(q, (H, W, 3), np.float32)
         rt.kernel(KFILE, "take_rgb", opts)(q, gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
         wavelet, v_rgb = wavelet_loss_and_grad(rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None,

@@ -3,17 +3,18 @@
 filters.py  filter design (h0, h1, g for a = (q + 1) / q) and the numpy reference transform
 ops.py      OpenCL host ops: convolution / resampling along an axis and adjoints, decompose,
             decompose_bwd, loss_and_grad (kernels in cl/wavelet.cl)
-loss.py     WaveletConfig, wavelet_loss_and_grad (the trainer's entry point), the pure-torch loss,
-            the autograd Function and nn.Module
+config.py   WaveletConfig and wavelet_loss_and_grad (the trainer's entry point), torch-free
+loss.py     the pure-torch loss, the autograd Function and nn.Module (torch)
 See docs/WAVELET.md.  The names from loss.py are loaded on first use, so that importing
-endowave_cl.wavelet.ops (the device path) does not import torch.
+endowave_cl.wavelet, .ops or .config (the device path) does not import torch.
 """
+from .config import WaveletConfig, wavelet_loss_and_grad
 from .filters import BANDS, design_filters, level_shapes, resampled_length, support_radius
 
-_FROM_LOSS = ("RationalWaveletLoss", "WaveletConfig", "WaveletLossFunction", "torch_decompose",
-              "torch_wavelet_loss", "wavelet_loss_and_grad")
+_FROM_LOSS = ("RationalWaveletLoss", "WaveletLossFunction", "torch_decompose", "torch_wavelet_loss")
 
-__all__ = ["BANDS", "design_filters", "level_shapes", "resampled_length", "support_radius", *_FROM_LOSS]
+__all__ = ["BANDS", "design_filters", "level_shapes", "resampled_length", "support_radius",
+           "WaveletConfig", "wavelet_loss_and_grad", *_FROM_LOSS]
 
 
 def __getattr__(name):
