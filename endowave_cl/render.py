@@ -107,7 +107,9 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     if deterministic is None:
         deterministic = not rt.is_gpu
     if v_alpha is None:
-        v_alpha = cla.zeros(rt.queue, (cam.height, cam.width), np.float32)
+        # one zero image per size, kept by the runtime (the adjoint kernels only read v_alpha)
+        v_alpha = rt.cached(("render.zero_v_alpha", cam.height, cam.width),
+                            lambda: cla.zeros(rt.queue, (cam.height, cam.width), np.float32))
     t0 = time.perf_counter()
     p = out.proj
     v2d = rasterize_projected_bwd(rt, p, out.binned, out.raster, v_features, v_alpha, cam.width, cam.height,
