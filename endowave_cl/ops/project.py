@@ -28,6 +28,8 @@ class Projected:
     features: cla.Array       # [N, C] float32 [r, g, b, depth, flow_x, flow_y]
     rect: cla.Array           # [N, 4] int32 (x0, y0, x1, y1) exclusive, in tiles
     tiles_touched: cla.Array  # [N] int32
+    camera: object = None      # the camera projected with ...
+    camera_buf: object = None  # ... and its device buffer: project4d_bwd reuses it for the same camera
 
     def __len__(self) -> int:
         return int(self.radius.shape[0])
@@ -93,6 +95,7 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     _check_params(params, n)
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
+    out.camera, out.camera_buf = camera, cam
     k = rt.kernel("project4d.cl", "project4d", _options(rt, degree, nt, channels))
     k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
       np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
@@ -124,7 +127,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     _check_params(params, n)
     channels = int(v_features.shape[1])
     tiles_x, tiles_y = _tiles(camera)
-    cam = camera_buffer(rt, camera)
+    cam = proj.camera_buf if proj.camera is camera and proj.camera_buf is not None else camera_buffer(rt, camera)
     k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
     k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
       np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
