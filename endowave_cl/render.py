@@ -95,7 +95,7 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
     deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
     instead of float atomics; see ops/rasterize.py). None: on for CPU devices, where it is also
-    the faster mode (PoCL, tools/bench_render.py: rasterize adjoint 88 vs 113 ms), off on GPUs.
+    the faster mode (tools/bench_render.py times both), off on GPUs.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
