@@ -1,6 +1,6 @@
 """The training step's image losses on the device (kernels in cl/image_loss.cl).
 
-``image_losses_and_grad`` computes what ``losses.image_losses`` (the torch reference, whose module
+``image_losses_and_grad`` computes what ``reference/losses.py::image_losses_ref`` (the torch reference, whose module
 doc gives the definitions and choices) computes, plus the rational-wavelet term, from the rendered
 feature image that stays on the device, and returns the gradient image for the adjoints: nothing
 but a handful of loss sums crosses to the host.
@@ -21,7 +21,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from ..runtime import round_up
-from .loss_constants import FLOW_HUBER_DELTA, gaussian_window_1d
+from ..loss_constants import FLOW_HUBER_DELTA, gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -45,7 +45,7 @@ class DeviceTargets:
 
 def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
                     flow: Optional[np.ndarray] = None, flow_valid: Optional[np.ndarray] = None) -> DeviceTargets:
-    """Upload a frame's targets (numpy, channel-last) with the weight maps of losses.image_losses."""
+    """Upload a frame's targets (numpy, channel-last) with the weight maps of image_losses_ref (reference/losses.py)."""
     import pyopencl.array as cla
 
     def up(a):
@@ -65,7 +65,7 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
 
 
 def _window(rt) -> object:
-    """The SSIM window (losses.py's 1D Gaussian) as a float32 device array, cached per runtime."""
+    """The SSIM window (loss_constants.gaussian_window_1d) as a float32 device array, cached per runtime."""
     import pyopencl.array as cla
     # symmetric: its own reverse
     return rt.cached("ssim.window", lambda: cla.to_device(rt.queue, gaussian_window_1d().astype(np.float32)))
@@ -83,7 +83,7 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
 
     cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet); channels: {"depth": k,
     "flow": k} (the colour is channels 0..2).  Terms whose targets are missing are left out, as
-    in losses.image_losses.  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
+    in image_losses_ref (reference/losses.py).  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
     """
     import pyopencl as cl
     import pyopencl.array as cla

@@ -2,7 +2,7 @@
 
 The trainer computes the same functions, and their gradient images for rasterize_bwd, with the
 OpenCL kernels of endowave_cl/train/device_losses.py (cl/image_loss.cl); tests/test_device_losses.py
-checks them against ``image_losses`` here and its torch autograd gradient.
+checks them against ``image_losses_ref`` here and its torch autograd gradient.
 
 Images are channel-last float tensors: image [H, W, 3], depth [H, W], flow [H, W, 2];
 mask [H, W] with 1 = supervise (tissue), 0 = ignore (tool).  Every "masked mean" divides by the
@@ -35,7 +35,7 @@ from typing import Callable, Dict, Mapping, Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-from .loss_constants import FLOW_HUBER_DELTA, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401
+from ..loss_constants import FLOW_HUBER_DELTA, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401
 
 
 def _gaussian_window_1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
@@ -135,7 +135,7 @@ def _f(x: torch.Tensor) -> float:
 WaveletLoss = Callable[[torch.Tensor, torch.Tensor, Optional[torch.Tensor]], torch.Tensor]
 
 
-def image_losses(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional[torch.Tensor]], cfg,
+def image_losses_ref(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional[torch.Tensor]], cfg,
                  wavelet_loss: Optional[WaveletLoss] = None) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The total training loss of one frame and its parts (floats, for logging).
 
