@@ -49,7 +49,8 @@ def main(argv=None):
     import torch
     from endowave_cl.runtime import get_runtime
     from endowave_cl.wavelet import ops
-    from endowave_cl.wavelet.loss import WaveletConfig, torch_decompose, torch_wavelet_loss, wavelet_loss_and_grad
+    from endowave_cl.reference.wavelet import decompose_ref, wavelet_loss_ref
+    from endowave_cl.wavelet.config import WaveletConfig, wavelet_loss_and_grad
 
     cfg = WaveletConfig(levels=args.levels) if args.q is None else WaveletConfig(q=args.q, levels=args.levels)
     rt = get_runtime(args.device)
@@ -91,17 +92,17 @@ def main(argv=None):
 
         def th_transform():
             with torch.no_grad():
-                torch_decompose(x, cfg.q, cfg.levels)
+                decompose_ref(x, cfg.q, cfg.levels)
 
         def th_loss():
             with torch.no_grad():
-                torch_wavelet_loss(x, tt, mm, cfg)
+                wavelet_loss_ref(x, tt, mm, cfg)
 
         def th_loss_grad():
             rr.grad = None
-            torch_wavelet_loss(rr, tt, mm, cfg).backward()
+            wavelet_loss_ref(rr, tt, mm, cfg).backward()
 
-        rows += [("torch   transform (torch_decompose)", th_transform),
+        rows += [("torch   transform (decompose_ref)", th_transform),
                  ("torch   loss forward", th_loss),
                  ("torch   loss + gradient (autograd)", th_loss_grad)]
     for name, fn in rows:
