@@ -292,6 +292,16 @@ class Runtime:
         """arr's buffer, or the placeholder when arr is None or empty."""
         return arr.data if arr is not None and arr.size > 0 else self.dummy_buffer()
 
+    def launch(self, kernel, global_size, local_size, *args):
+        """Enqueue kernel on this runtime's queue over global_size, in work-groups of local_size
+        (None: the driver chooses)."""
+        return kernel(self.queue, global_size, local_size, *args)
+
+    def launch_1d(self, kernel, n: int, group: int, *args):
+        """One work-item per element of n in work-groups of ``group``: the range is n rounded up to
+        a multiple of group, and the kernel checks its index against n."""
+        return kernel(self.queue, (round_up(n, group),), (group,), *args)
+
     def cached(self, key, make):
         """self.cache[key], made by make() on first use: device constants (filters, windows) and
         per-device choices, keyed by the op's name and its parameters."""

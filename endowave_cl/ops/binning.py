@@ -16,7 +16,6 @@ import pyopencl.array as cla
 from endowave_cl.layout import TILE, tile_grid  # noqa: F401  (tile_grid: part of this module's API)
 from endowave_cl.ops.scan import exclusive_scan_with_total
 from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
-from endowave_cl.runtime import round_up
 
 DEPTH_BITS = 32  # low key bits: the float32 depth's bit pattern
 LOCAL = 64       # work-group size of the one-item-per-element kernels here
@@ -45,8 +44,7 @@ def key_bits(n_tiles: int) -> int:
 
 
 def _launch(rt, name, n, *args):
-    k = rt.kernel("bin.cl", name)
-    k(rt.queue, (round_up(n, LOCAL),), (LOCAL,), *args)
+    rt.launch_1d(rt.kernel("bin.cl", name), n, LOCAL, *args)
 
 
 def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,

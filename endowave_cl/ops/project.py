@@ -13,7 +13,6 @@ import pyopencl.array as cla
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
 from ..layout import CAM_SIZE, CHANNELS, tile_grid
-from ..runtime import round_up
 
 WORK_GROUP = 64        # work-items per group; one work-item per Gaussian
 
@@ -97,13 +96,13 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     cam = camera_buffer(rt, camera)
     out.camera, out.camera_buf = camera, cam
     k = rt.kernel("project4d.cl", "project4d", _options(rt, degree, nt, channels))
-    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
-      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
-      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
-      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
-      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
-      out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
-      out.features.data, out.rect.data, out.tiles_touched.data)
+    rt.launch_1d(k, n, WORK_GROUP,
+                 np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+                 params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+                 cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+                 np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+                 out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
+                 out.features.data, out.rect.data, out.tiles_touched.data)
     return out
 
 
@@ -129,12 +128,12 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     tiles_x, tiles_y = _tiles(camera)
     cam = proj.camera_buf if proj.camera is camera and proj.camera_buf is not None else camera_buffer(rt, camera)
     k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
-    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
-      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
-      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
-      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
-      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
-      proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
-      grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
-      grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
+    rt.launch_1d(k, n, WORK_GROUP,
+                 np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+                 params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+                 cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+                 np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+                 proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
+                 grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
+                 grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
     return grads

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import EndowaveError
 from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid
 from ..probe import ENV_PLANT
-from ..runtime import ENV_CACHE_DIR, round_up
+from ..runtime import ENV_CACHE_DIR
 
 
 def _f32_literal(x: float) -> str:
@@ -274,15 +274,15 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
         rec = _vec_records(rt, means2d, conic, opac, features, opts)
         k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
         gsize, lsize = _vec_grid(width, height, ch)
-        k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
-          np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+        rt.launch(k, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
+                  np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
         res.rec = rec
         return res
     _check_local(rt, fwd_local_bytes(C), "rasterize", C)
     k = rt.kernel("rasterize.cl", "rasterize", _options(C))
-    k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
-      _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
-      res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+    rt.launch(k, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
+              _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+              res.out.data, res.alpha.data, res.T_final.data, res.last.data)
     return res
 
 
@@ -307,8 +307,8 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
     rec = cla.empty(rt.queue, (N, rec4, 4), np.float32)
     kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
     wg = 64
-    kp(rt.queue, (round_up(N, wg),), (wg,), means2d.data, conic.data, opac.data, features.data,
-       np.int32(N), rec.data)
+    rt.launch_1d(kp, N, wg, means2d.data, conic.data, opac.data, features.data,
+                 np.int32(N), rec.data)
     return rec
 
 
@@ -355,24 +355,24 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
             rec = _vec_records(rt, means2d, conic, opac, features, vec_options(C, ch))
         k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd", vec_bwd_options(rt, C, ch, det))
         gsize, lsize = _vec_grid(width, height, ch)
-        k(q, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
-          np.int32(width), np.int32(height), np.int32(tiles_x),
-          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+        rt.launch(k, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
+                  np.int32(width), np.int32(height), np.int32(tiles_x),
+                  raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+                  grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
-        k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
-          tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
-          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+        rt.launch(k, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
+                  tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+                  raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+                  grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     if det:
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        kg(q, (round_up(N, wg),), (wg,), v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
-           grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
+        rt.launch_1d(kg, N, wg, v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
+                     grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 
 
@@ -403,5 +403,5 @@ def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, gra
         return
     k = rt.kernel("densify_stats.cl", "accumulate_densify_stats")
     wg = 64
-    k(rt.queue, (round_up(N, wg),), (wg,), v_means2d.data, radius.data, np.float32(0.5 * width),
-      np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)
+    rt.launch_1d(k, N, wg, v_means2d.data, radius.data, np.float32(0.5 * width),
+                 np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)

@@ -104,8 +104,8 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     gsize = (round_up(max(npix, 1), LOCAL),)
 
     maps = cla.empty(q, (H, W, NMAP), np.float32)
-    rt.kernel(KFILE, "ssim_stack", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
-                                         np.int32(npix), maps.data)
+    rt.launch(rt.kernel(KFILE, "ssim_stack", opts), gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
+              np.int32(npix), maps.data)
     blurred = _blur(rt, maps, window)
 
     v = cla.empty(q, (H, W, CF), np.float32)
@@ -124,19 +124,19 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
         np.float32(getattr(cfg, "flow_huber_delta", FLOW_HUBER_DELTA)), np.int32(npix),
         v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
     gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
-    rt.kernel(KFILE, "ssim_grad_combine", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data,
-                                                tgt.mask.data, gb.data, np.int32(npix), v.data)
+    rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,
+              tgt.mask.data, gb.data, np.int32(npix), v.data)
 
     parts: Dict[str, float] = {}
     wavelet = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
         from ..wavelet.config import wavelet_loss_and_grad
         rgb = cla.empty(q, (H, W, 3), np.float32)
-        rt.kernel(KFILE, "take_rgb", opts)(q, gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
+        rt.launch(rt.kernel(KFILE, "take_rgb", opts), gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
         wavelet, v_rgb = wavelet_loss_and_grad(rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None,
                                                wavelet_config)
-        rt.kernel(KFILE, "add_rgb", opts)(q, gsize, (LOCAL,), v.data, v_rgb.data,
-                                          np.float32(cfg.lambda_wavelet), np.int32(npix))
+        rt.launch(rt.kernel(KFILE, "add_rgb", opts), gsize, (LOCAL,), v.data, v_rgb.data,
+                  np.float32(cfg.lambda_wavelet), np.int32(npix))
 
     s = partial.get().astype(np.float64).sum(axis=0)   # [NSUM]
     l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb

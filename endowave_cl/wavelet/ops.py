@@ -47,7 +47,7 @@ def _dims(shape, axis: int) -> Tuple[int, int, int]:
 
 def _launch(rt, kernel, total: int, *args) -> None:
     """1-D range over total elements (element-wise kernels)."""
-    kernel(rt.queue, (round_up(max(int(total), 1), GROUP),), None, *args)
+    rt.launch(kernel, (round_up(max(int(total), 1), GROUP),), None, *args)
 
 
 CONV_RUN = 8          # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN there)
@@ -57,7 +57,7 @@ def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1
     """2-D range of the axis kernels: (ceil(n * inner / run) rounded up, outer); a work-item
     computes `run` consecutive elements of a line."""
     items = -(-max(int(n) * int(inner), 1) // run)
-    kernel(rt.queue, (round_up(items, GROUP), max(int(outer), 1)), None, *args)
+    rt.launch(kernel, (round_up(items, GROUP), max(int(outer), 1)), None, *args)
 
 
 def _resample_options(q: int) -> List[str]:
@@ -298,8 +298,8 @@ def loss_and_grad(rt, rendered: cla.Array, target: cla.Array, mask: Optional[cla
         for b, band in enumerate(BANDS):
             x = bands[band]
             slot = j * len(BANDS) + b
-            red(rt.queue, (RED_GROUPS * local,), (local,), x.data, np.int32(x.size), partial.data,
-                np.int32(slot), cl.LocalMemory(4 * local))
+            rt.launch(red, (RED_GROUPS * local,), (local,), x.data, np.int32(x.size), partial.data,
+                      np.int32(slot), cl.LocalMemory(4 * local))
             sizes.append(x.size)
             # cotangent of the band, in place: 2 lambda / n * coefficient
             _launch(rt, scl, x.size, x.data, x.data, np.float32(2.0 * lam[b] / x.size),
