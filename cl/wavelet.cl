@@ -37,7 +37,7 @@ inline int reflect_idx(int m, int n) {
 #define CONV_RUN 8
 
 /* sum_i f[i] src[(i - R) step] for the 8 elements src[0 .. 7]: an interior run of conv_axis
- * (step = -inner) or of v_conv_axis (step = +inner), R = flen / 2. */
+ * (step = -inner) or of conv_axis_bwd (step = +inner), R = flen / 2. */
 inline float8 conv_run8(__global const float *src, __global const float *f, int flen, int step) {
     const int R = flen / 2;
     float8 acc = (float8)(0.0f);
@@ -93,7 +93,7 @@ __kernel void conv_axis(__global const float *in, __global float *out,
     }
 }
 
-/* One element of v_conv_axis (see there); line = &v_out[o, 0, k]. */
+/* One element of conv_axis_bwd (see there); line = &v_out[o, 0, k]. */
 inline float v_conv_elem(__global const float *line, __global const float *f, int flen, int n, int inner,
                          int y) {
     const int R = flen / 2;
@@ -133,7 +133,7 @@ inline float v_conv_elem(__global const float *line, __global const float *f, in
  * dropped).  The positions m that reflect onto y are y + j P and -y + j P, P = 2 (n - 1).
  * v_out, v_in: [outer, n, inner]; accumulate != 0 adds to v_in instead of overwriting it.
  * Work-item (t, o) computes CONV_RUN consecutive flat elements, as in conv_axis. */
-__kernel void v_conv_axis(__global const float *v_out, __global float *v_in,
+__kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
                           __global const float *f, const int flen,
                           const int outer, const int n, const int inner, const int accumulate) {
     const int yi0 = get_global_id(0) * CONV_RUN;    /* first y * inner + k of this work-item */
@@ -184,7 +184,7 @@ __kernel void resample_axis(__global const float *in, __global float *out,
 
 /* Adjoint of resample_axis: v_in[o, i, k] (+)= sum_j max(0, 1 - |j p - i q| / q) v_out[o, j, k],
  * over the j with |j p - i q| < q, i.e. ceil(((i - 1) q + 1) / p) <= j <= floor(((i + 1) q - 1) / p). */
-__kernel void v_resample_axis(__global const float *v_out, __global float *v_in,
+__kernel void resample_axis_bwd(__global const float *v_out, __global float *v_in,
                               const int outer, const int n_in, const int n_out, const int inner,
                               const int accumulate) {
     const int p = RP, q = RQ;

@@ -1,4 +1,8 @@
-"""Atomic writes: a file appears complete under its final name, or not at all.
+"""Atomic writes: a file or a folder appears complete under its final name, or not at all.
+
+The one home of atomic writing: bytes (``atomic_open``, ``write_bytes_atomic``), JSON
+(``write_json_atomic``), PNG (``save_png``, ``write_png_atomic``) and whole folders
+(``atomic_directory``).
 
 Temporary files are named ``.<final name>.<pid>.<random>.tmp`` beside the final file, so a later
 process can tell a temporary left by a killed writer (its pid no longer runs) from one being
@@ -10,11 +14,12 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shutil
 import tempfile
 from pathlib import Path
 
-# .<name>.<pid>.<random>.tmp, as written by atomic_open (data/atomic.atomic_directory uses the
-# same pattern for folders; a trailing extension is allowed for writers that need one, e.g. .tmp.mp4)
+# .<name>.<pid>.<random>.tmp, as written by atomic_open (atomic_directory uses the same pattern
+# for folders; a trailing extension is allowed for writers that need one, e.g. .tmp.mp4)
 TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[^.]+\.tmp(\.\w+)?$")
 
 
@@ -111,3 +116,61 @@ def write_json_atomic(path, obj, indent: int = 1) -> None:
     """Strict JSON (non-finite floats become null) written atomically."""
     import json
     write_bytes_atomic(path, json.dumps(json_safe(obj), indent=indent, allow_nan=False).encode())
+
+
+def save_png(path, image, atomic: bool = True) -> None:
+    """Encode ``image`` (uint8 or uint16, [H, W] or [H, W, 3] in BGR order) as PNG.
+
+    ``atomic=False`` writes directly: for files inside a temporary folder that is renamed as a whole.
+    """
+    import cv2
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    if atomic:
+        write_bytes_atomic(path, buf.tobytes())
+    else:
+        Path(path).write_bytes(buf.tobytes())
+
+
+@contextlib.contextmanager
+def atomic_directory(final, force: bool = False):
+    """Yield a temporary folder beside ``final``; on success it replaces ``final``.
+
+    ``final`` must be absent or empty unless ``force`` is true (then the old content is
+    removed only after the new folder is complete).  On any error the temporary folder is
+    deleted and ``final`` is left as it was.
+    """
+    from .errors import DataError
+    final = Path(final)
+    if final.exists():
+        if not final.is_dir():
+            raise DataError(f"{final}: exists and is not a folder")
+        if any(final.iterdir()) and not force:
+            raise DataError(f"{final}: folder is not empty (use --force to replace it)")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())   # mkdtemp's 0700 would make the finished folder private
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+        os.rmdir(old)
+        os.replace(final, old)
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_png_atomic(path, image) -> None:
+    """image: [H, W, 3] float RGB in [0, 1], or [H, W] uint8/uint16; written atomically."""
+    import numpy as np
+    if image.dtype in (np.uint8, np.uint16):
+        arr = image
+    else:
+        arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    save_png(path, arr[..., ::-1] if arr.ndim == 3 else arr)  # RGB -> BGR for OpenCV

@@ -1,9 +1,10 @@
 """The public render op: forward and adjoint of the whole splatting pipeline on the device.
 
     project4d -> bin_and_sort (scan, bin, radix sort, ranges) -> rasterize
+    Projected     Binned                                        RasterOut      (the stage records)
 
-``render`` returns a :class:`RenderOutput` holding the composited channels and what the
-adjoint needs; ``render_backward`` runs rasterize_bwd then project4d_bwd and returns the
+``render`` returns a :class:`RenderOutput` holding the composited channels and the stage records
+the adjoint needs; ``render_backward`` runs rasterize_bwd then project4d_bwd and returns the
 gradient of every parameter (and, when given, accumulates the densification statistics).
 Feature channels are ``[r, g, b, depth, flow_x, flow_y]`` (docs/ARCHITECTURE.md).
 """
@@ -16,9 +17,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from .camera import Camera
-
-CHANNELS = 6  # r, g, b, depth, flow_x, flow_y
-RGB, DEPTH, FLOW = slice(0, 3), 3, slice(4, 6)
+from .layout import CHANNELS, DEPTH, FLOW, RGB  # noqa: F401  (CHANNELS: read from here by callers)
 
 
 @dataclass
@@ -29,12 +28,25 @@ class RenderOutput:
     t: float
     t_flow: Optional[float]
     proj: object                # ops.project.Projected
+    binned: object              # ops.binning.Binned: sorted_values, tile_ranges, n_isect, offsets
     raster: object              # ops.rasterize.RasterOut
-    sorted_values: object       # cla int32 [M]
-    tile_ranges: object         # cla int32 [n_tiles, 2]
-    offsets: object             # cla int32 [N + 1] binning offsets (ops.binning.bin_gaussians)
-    n_isect: int                # M, number of (tile, Gaussian) pairs
     timings: Dict[str, float] = field(default_factory=dict)  # ms per stage when timed
+
+    @property
+    def sorted_values(self):    # cla int32 [M]
+        return self.binned.sorted_values
+
+    @property
+    def tile_ranges(self):      # cla int32 [n_tiles, 2]
+        return self.binned.tile_ranges
+
+    @property
+    def offsets(self):          # cla int32 [N + 1] binning offsets (ops.binning.bin_gaussians)
+        return self.binned.offsets
+
+    @property
+    def n_isect(self) -> int:   # M, number of (tile, Gaussian) pairs
+        return int(self.binned.n_isect)
 
     def host(self) -> Dict[str, np.ndarray]:
         """Download: image [H,W,3], depth [H,W], flow [H,W,2], alpha [H,W] as numpy arrays."""
@@ -54,9 +66,9 @@ def _tick(rt, timings, name, t0, timed):
 def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Optional[float] = None,
            timed: bool = False) -> RenderOutput:
     """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``."""
-    from .ops.binning import bin_and_sort
+    from .ops.binning import bin_projected
     from .ops.project import project4d
-    from .ops.rasterize import rasterize
+    from .ops.rasterize import rasterize_projected
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -64,16 +76,13 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
         rt.queue.finish()
     proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
     t0 = _tick(rt, timings, "project", t0, timed)
-    sorted_values, tile_ranges, n_isect, offsets = bin_and_sort(
-        rt, proj.rect, proj.depth, proj.radius, proj.tiles_touched, camera.width, camera.height)
+    binned = bin_projected(rt, proj, camera.width, camera.height)
     t0 = _tick(rt, timings, "bin_sort", t0, timed)
-    raster = rasterize(rt, proj.means2d, proj.conic, proj.opac, proj.features, sorted_values, tile_ranges,
-                       camera.width, camera.height)
+    raster = rasterize_projected(rt, proj, binned, camera.width, camera.height)
     _tick(rt, timings, "rasterize", t0, timed)
     if timed:
         timings["total"] = sum(timings.values())
-    return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, raster, sorted_values, tile_ranges,
-                        offsets, int(n_isect), timings)
+    return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, binned, raster, timings)
 
 
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
@@ -86,24 +95,25 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
     deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
     instead of float atomics; see ops/rasterize.py). None: on for CPU devices, where it is also
-    the faster mode (PoCL, tools/bench_render.py: rasterize adjoint 88 vs 113 ms), off on GPUs.
+    the faster mode (tools/bench_render.py times both), off on GPUs.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
 
     from .ops.project import project4d_bwd
-    from .ops.rasterize import accumulate_densify_stats, rasterize_bwd
+    from .ops.rasterize import accumulate_densify_stats, rasterize_projected_bwd
 
     cam = out.camera
     if deterministic is None:
         deterministic = not rt.is_gpu
     if v_alpha is None:
-        v_alpha = cla.zeros(rt.queue, (cam.height, cam.width), np.float32)
+        # one zero image per size, kept by the runtime (the adjoint kernels only read v_alpha)
+        v_alpha = rt.cached(("render.zero_v_alpha", cam.height, cam.width),
+                            lambda: cla.zeros(rt.queue, (cam.height, cam.width), np.float32))
     t0 = time.perf_counter()
     p = out.proj
-    v2d = rasterize_bwd(rt, p.means2d, p.conic, p.opac, p.features, out.sorted_values, out.tile_ranges,
-                        cam.width, cam.height, out.raster, v_features, v_alpha,
-                        deterministic=(p.rect, out.offsets) if deterministic else None)
+    v2d = rasterize_projected_bwd(rt, p, out.binned, out.raster, v_features, v_alpha, cam.width, cam.height,
+                                  deterministic=bool(deterministic))
     t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
     if densify_stats is not None and len(params["means"]):
         accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,

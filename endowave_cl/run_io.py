@@ -5,8 +5,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
+from .atomic import write_png_atomic  # noqa: F401  (moved to atomic.py; evaluation.py imports it from here)
 from .errors import EndowaveError
 
 
@@ -49,12 +48,3 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     scene = load_scene(scene_path, downscale=cfg.downscale)
     return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
 
-
-def write_png_atomic(path, image: np.ndarray) -> None:
-    """image: [H, W, 3] float RGB in [0, 1], or [H, W] uint8/uint16; written atomically."""
-    from .data.atomic import save_png
-    if image.dtype in (np.uint8, np.uint16):
-        arr = image
-    else:
-        arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
-    save_png(path, arr[..., ::-1] if arr.ndim == 3 else arr)  # RGB -> BGR for OpenCV

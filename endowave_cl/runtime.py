@@ -222,7 +222,10 @@ def _read_cache_entry(cache_file: Path, key: str) -> Tuple[bytes, List[str]]:
 
 
 class Runtime:
-    """A context + queue on one device, and a cache of built programs."""
+    """A context + queue on one device, a cache of built programs, and the per-device state of the
+    ops: one memory pool (:meth:`pool`), one empty-buffer placeholder (:meth:`dummy_buffer`,
+    :meth:`buf`) and a cache of device constants and per-device choices (:meth:`cached`).  All of
+    it lives and dies with the Runtime."""
 
     def __init__(self, entry: DeviceEntry, disk_cache: Optional[bool] = None):
         cl = _cl()
@@ -238,6 +241,9 @@ class Runtime:
         self._programs: Dict[Tuple[str, str], object] = {}
         self._kernels: Dict[Tuple[str, str, str], object] = {}
         self._lock = threading.Lock()
+        self.cache: Dict[object, object] = {}   # see cached()
+        self._pool = None
+        self._dummy = None
 
     # -- what kernels need to size themselves -------------------------------------------------
     @property
@@ -264,10 +270,45 @@ class Runtime:
     def max_work_group_size(self) -> int:
         return int(self.device.max_work_group_size)
 
-    def preferred_work_group_multiple(self, kernel) -> int:
-        cl = self.cl
-        return int(kernel.get_work_group_info(
-            cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, self.device))
+    # -- per-device state of the ops ------------------------------------------------------------
+    def pool(self):
+        """The memory pool of this device's output and gradient buffers: they are reused across
+        calls once the previous call's arrays are freed (a fresh 60 MB buffer per call costs more
+        than the kernel on PoCL, which allocates and faults in new buffers on first use).  Pass it
+        as ``allocator=`` to pyopencl.array.empty; pooled buffers are not zeroed."""
+        if self._pool is None:
+            from pyopencl.tools import ImmediateAllocator, MemoryPool
+            self._pool = MemoryPool(ImmediateAllocator(self.queue))
+        return self._pool
+
+    def dummy_buffer(self):
+        """A 4-byte placeholder for kernel arguments that are absent or empty (pyopencl gives
+        zero-size arrays no buffer); kernels never touch it."""
+        if self._dummy is None:
+            self._dummy = self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, 4)
+        return self._dummy
+
+    def buf(self, arr):
+        """arr's buffer, or the placeholder when arr is None or empty."""
+        return arr.data if arr is not None and arr.size > 0 else self.dummy_buffer()
+
+    def launch(self, kernel, global_size, local_size, *args):
+        """Enqueue kernel on this runtime's queue over global_size, in work-groups of local_size
+        (None: the driver chooses)."""
+        return kernel(self.queue, global_size, local_size, *args)
+
+    def launch_1d(self, kernel, n: int, group: int, *args):
+        """One work-item per element of n in work-groups of ``group``: the range is n rounded up to
+        a multiple of group, and the kernel checks its index against n."""
+        return kernel(self.queue, (round_up(n, group),), (group,), *args)
+
+    def cached(self, key, make):
+        """self.cache[key], made by make() on first use: device constants (filters, windows) and
+        per-device choices, keyed by the op's name and its parameters."""
+        v = self.cache.get(key)
+        if v is None:
+            v = self.cache[key] = make()
+        return v
 
     def describe(self) -> str:
         d = self.device

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from endowave_cl.data import load_scene
-from endowave_cl.data.atomic import save_png
+from endowave_cl.atomic import save_png
 from endowave_cl.data.synth import make_synthetic_scene
 from endowave_cl.errors import DataError
 

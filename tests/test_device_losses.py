@@ -1,4 +1,4 @@
-"""The device image losses (cl/image_loss.cl) against the torch reference losses.image_losses."""
+"""The device image losses (cl/image_loss.cl) against the torch reference image_losses_ref (reference/losses.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +9,7 @@ import torch
 from conftest import small
 from endowave_cl.train.config import TrainConfig
 from endowave_cl.train.device_losses import image_losses_and_grad, prepare_targets
-from endowave_cl.train.losses import image_losses
+from endowave_cl.reference.losses import image_losses_ref
 from endowave_cl.wavelet.loss import WaveletConfig, wavelet_loss_and_grad
 
 CHANNELS = {"depth": 3, "flow": 4}
@@ -34,7 +34,7 @@ def reference(f, feats, cfg):
     x = torch.from_numpy(feats.copy()).requires_grad_(True)
     pred = {"image": x[..., :3], "depth": x[..., 3], "flow": x[..., 4:6]}
     tgt = {k: (None if v is None else torch.from_numpy(v)) for k, v in f.items()}
-    total, parts = image_losses(pred, tgt, cfg)
+    total, parts = image_losses_ref(pred, tgt, cfg)
     total.backward()
     return float(total.detach()), parts, x.grad.numpy()
 

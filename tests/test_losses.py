@@ -1,4 +1,4 @@
-"""Training losses (train/losses.py): hand-computed values, an independent SSIM, gradcheck."""
+"""Training losses (reference/losses.py): hand-computed values, an independent SSIM, gradcheck."""
 from __future__ import annotations
 
 import math
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from endowave_cl.train.config import TrainConfig
-from endowave_cl.train.losses import (SSIM_C1, depth_loss, flow_loss, image_losses, rgb_loss, rgb_terms,
-                                      ssim_map)
+from endowave_cl.reference.losses import (SSIM_C1, depth_loss, flow_loss, image_losses_ref, rgb_loss,
+                                          rgb_terms, ssim_map)
 
 
 @pytest.fixture(autouse=True)
@@ -115,7 +115,7 @@ def test_image_losses_total_and_switches():
             "flow": _rand((H, W, 2), 17).requires_grad_()}
     wav = lambda p, g, m: ((p - g) ** 2).mean()
     cfg = TrainConfig(lambda_depth=0.5, lambda_flow=0.01, lambda_wavelet=2.0)
-    total, parts = image_losses(pred, gt, cfg, wavelet_loss=wav)
+    total, parts = image_losses_ref(pred, gt, cfg, wavelet_loss=wav)
     want = parts["rgb"] + 0.5 * parts["depth"] + 0.01 * parts["flow"] + 2.0 * parts["wavelet"]
     assert parts["total"] == pytest.approx(want, rel=1e-6)
     assert parts["rgb"] == pytest.approx(0.8 * parts["l1"] + 0.2 * (1 - parts["ssim"]), rel=1e-6)
@@ -123,7 +123,7 @@ def test_image_losses_total_and_switches():
     assert all(pred[k].grad is not None and pred[k].grad.abs().sum() > 0 for k in pred)
     # switches and missing inputs leave terms out
     cfg2 = TrainConfig(use_flow=False, use_wavelet=False)
-    _, parts2 = image_losses(pred, {**gt, "depth": None}, cfg2)
+    _, parts2 = image_losses_ref(pred, {**gt, "depth": None}, cfg2)
     assert set(parts2) == {"l1", "ssim", "rgb", "total"} and parts2["total"] == pytest.approx(parts2["rgb"])
-    _, parts3 = image_losses(pred, gt, TrainConfig())  # no wavelet function: the caller adds it
+    _, parts3 = image_losses_ref(pred, gt, TrainConfig())  # no wavelet function: the caller adds it
     assert "wavelet" not in parts3 and "flow" in parts3

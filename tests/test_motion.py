@@ -79,7 +79,7 @@ def _translation_scene(path, W=64, H=48, frames=17, shift=(0.9, 0.4), z=2.0):
     """A textured plane at depth z translating by `shift` px per frame, static camera, with depth
     and exact flow: EndoNeRF layout."""
     import cv2
-    from endowave_cl.data.atomic import save_png
+    from endowave_cl.atomic import save_png
     rng = np.random.default_rng(0)
     tex = cv2.GaussianBlur(rng.uniform(0, 1, (H + 80, W + 80, 3)).astype(np.float32), (0, 0), 2.0)
     tex = (tex - tex.min()) / (tex.max() - tex.min())

@@ -138,6 +138,9 @@ def test_variants_too_big_for_local_memory_are_skipped(fresh, monkeypatch, capfd
         name, is_gpu, is_oclgrind = "small device", False, False
         local_mem_size = max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], 16),
                              RZ.fwd_vec_local_bytes(6, 16, 4))   # 16 lanes just fit, 8 and 4 do not
+
+        def __init__(self):
+            self.cache = {}   # the Runtime's per-device cache (raster_choice keeps its choice there)
     probed = []
 
     def fake_verdict(rt, C, vw, bw):

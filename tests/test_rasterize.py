@@ -14,8 +14,7 @@ from endowave_cl.reference.binning import (bin_gaussians_ref, bin_offsets_ref, s
                                            tile_ranges_ref)
 from endowave_cl.reference.rasterize import (ALPHA_MAX, accumulate_densify_stats_ref, rasterize_bwd_ref,
                                              rasterize_dense_ref, rasterize_ref)
-
-TILE = 16
+from endowave_cl.layout import TILE
 
 
 def make_scene(seed, n, width, height, C=6, sigma=(1.0, 6.0), opac=(0.05, 1.0), margin=8.0):

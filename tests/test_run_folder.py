@@ -207,7 +207,7 @@ def test_stale_temporaries_are_removed_at_start(rt, tiny_scene, tmp_path):
 
 def test_written_files_follow_the_umask(tmp_path):
     from endowave_cl.atomic import write_bytes_atomic
-    from endowave_cl.data.atomic import atomic_directory
+    from endowave_cl.atomic import atomic_directory
     old = os.umask(0o022)
     try:
         write_bytes_atomic(tmp_path / "a.json", b"{}")

@@ -13,9 +13,8 @@ from conftest import small
 from endowave_cl.ops import scan as S
 from endowave_cl.ops import sort as R
 from endowave_cl.reference.binning import sort_pairs_ref
-from endowave_cl.reference.scan import exclusive_scan as exclusive_scan_ref
-from endowave_cl.reference.scan import radix_histogram as radix_histogram_ref
-from endowave_cl.reference.scan import radix_scatter as radix_scatter_ref
+from endowave_cl.reference.scan import exclusive_scan_ref
+from endowave_cl.reference.sort import radix_histogram_ref, radix_scatter_ref
 
 # Small configurations that make block boundaries fall inside small inputs, and exercise
 # work-groups with more work-items than radix digits and the other way round.

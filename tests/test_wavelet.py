@@ -59,7 +59,7 @@ def test_conv_axis_zero_border_and_its_adjoint(rt, shape, axis, flen):
 def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
     x, y, f = rand(shape, 1), rand(shape, 2), rand(flen, 3)
     Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
-    ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis).get()
+    ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get()
     lhs, rhs = dot(Ax, y), dot(x, ATy)
     assert abs(lhs - rhs) <= 1e-5 * (1 + np.abs(Ax * y).sum())
     # and elementwise against the explicit transpose of the reference operator
@@ -73,20 +73,20 @@ def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
 def test_conv_adjoint_accumulates_over_interior_runs(rt, axis):
     y, f, base = rand((37, 29, 3), 11), rand(13, 12), rand((37, 29, 3), 13)
     out = dev(rt, base)
-    ops.v_conv_axis(rt, dev(rt, y), f, axis, out=out, accumulate=True)
-    np.testing.assert_allclose(out.get(), base + ops.v_conv_axis(rt, dev(rt, y), f, axis).get(), atol=1e-5)
+    ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get(), atol=1e-5)
 
 
 def test_adjoints_accumulate(rt):
     y, f = rand((6, 5, 2), 5), rand(9, 6)
     base = rand((6, 5, 2), 7)
     out = dev(rt, base)
-    ops.v_conv_axis(rt, dev(rt, y), f, 1, out=out, accumulate=True)
-    np.testing.assert_allclose(out.get(), base + ops.v_conv_axis(rt, dev(rt, y), f, 1).get(), atol=1e-5)
+    ops.conv_axis_bwd(rt, dev(rt, y), f, 1, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.conv_axis_bwd(rt, dev(rt, y), f, 1).get(), atol=1e-5)
     yo = rand((4, 5, 2), 8)
     out = dev(rt, base)
-    ops.v_resample_axis(rt, dev(rt, yo), 2, 0, 6, out=out, accumulate=True)
-    np.testing.assert_allclose(out.get(), base + ops.v_resample_axis(rt, dev(rt, yo), 2, 0, 6).get(), atol=1e-5)
+    ops.resample_axis_bwd(rt, dev(rt, yo), 2, 0, 6, out=out, accumulate=True)
+    np.testing.assert_allclose(out.get(), base + ops.resample_axis_bwd(rt, dev(rt, yo), 2, 0, 6).get(), atol=1e-5)
 
 
 @pytest.mark.parametrize("q", [1, 2, 3, 5])
@@ -98,7 +98,7 @@ def test_resample_matches_reference_and_adjoint(rt, q, shape, axis):
     assert got.shape == ref.shape
     np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
     y = rand(ref.shape, q + 10)
-    ATy = ops.v_resample_axis(rt, dev(rt, y), q, axis, shape[axis]).get()
+    ATy = ops.resample_axis_bwd(rt, dev(rt, y), q, axis, shape[axis]).get()
     assert ATy.shape == x.shape
     assert abs(dot(got, y) - dot(x, ATy)) <= 1e-5 * (1 + np.abs(got * y).sum())
     M = F.resample_weights(shape[axis], q)
@@ -143,7 +143,7 @@ def test_decompose_adjoint_dot_product(rt, shape, q, levels):
     x = rand(shape, 5)
     Ax = [{b: v.get() for b, v in lv.items()} for lv in ops.decompose(rt, dev(rt, x), q, levels)]
     y = [{b: rand(Ax[j][b].shape, 10 * j + i) for i, b in enumerate(BANDS)} for j in range(levels)]
-    ATy = ops.v_decompose(rt, [{b: dev(rt, y[j][b]) for b in BANDS} for j in range(levels)], shape, q).get()
+    ATy = ops.decompose_bwd(rt, [{b: dev(rt, y[j][b]) for b in BANDS} for j in range(levels)], shape, q).get()
     assert ATy.shape == x.shape
     lhs = sum(dot(Ax[j][b], y[j][b]) for j in range(levels) for b in BANDS)
     scale = sum(np.abs(Ax[j][b] * y[j][b]).sum() for j in range(levels) for b in BANDS)
@@ -170,4 +170,4 @@ def test_bad_inputs_are_refused(rt):
     with pytest.raises(TypeError):
         ops.conv_axis(rt, cla.to_device(rt.queue, np.zeros((4, 4))), np.ones(3), 0)
     with pytest.raises(ValueError, match="does not resample"):
-        ops.v_resample_axis(rt, dev(rt, rand((3,), 0)), 2, 0, 9)
+        ops.resample_axis_bwd(rt, dev(rt, rand((3,), 0)), 2, 0, 9)

@@ -9,8 +9,8 @@ import torch
 
 from endowave_cl.wavelet import filters as F
 from endowave_cl.wavelet import ops
-from endowave_cl.wavelet.loss import (RationalWaveletLoss, WaveletConfig, WaveletLossFunction,
-                                      torch_decompose, torch_wavelet_loss, wavelet_loss_and_grad)
+from endowave_cl.reference.wavelet import decompose_ref, wavelet_loss_ref
+from endowave_cl.wavelet.loss import RationalWaveletLoss, WaveletConfig, WaveletLossFunction, wavelet_loss_and_grad
 
 
 def dev(rt, x):
@@ -28,7 +28,7 @@ def images(shape, seed):
 def torch_loss_grad(r, t, m, cfg):
     rr = torch.tensor(r, dtype=torch.float64, requires_grad=True)
     mm = None if m is None else torch.tensor(m, dtype=torch.float64)
-    L = torch_wavelet_loss(rr, torch.tensor(t, dtype=torch.float64), mm, cfg)
+    L = wavelet_loss_ref(rr, torch.tensor(t, dtype=torch.float64), mm, cfg)
     L.backward()
     return L.item(), rr.grad.numpy()
 
@@ -93,7 +93,7 @@ def test_masked_pixels_do_not_matter(rt):
 def test_torch_version_matches_numpy_reference_transform():
     x = np.random.default_rng(2).standard_normal((17, 12, 2))
     for q in (1, 2, 4):
-        got = torch_decompose(torch.tensor(x), q, 2)
+        got = decompose_ref(torch.tensor(x), q, 2)
         ref = F.decompose(x, q, 2)
         for j in range(2):
             for band in F.BANDS:
@@ -129,7 +129,7 @@ def test_torch_loss_gradcheck():
     cfg = WaveletConfig(q=2)
     rr = torch.tensor(r, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(
-        lambda x: torch_wavelet_loss(x, torch.tensor(t, dtype=torch.float64), torch.tensor(m, dtype=torch.float64), cfg),
+        lambda x: wavelet_loss_ref(x, torch.tensor(t, dtype=torch.float64), torch.tensor(m, dtype=torch.float64), cfg),
         (rr,), fast_mode=True)
 
 
@@ -156,7 +156,7 @@ def test_oclgrind_transform_and_adjoint_13x11x3(rt):
     ref = F.decompose(x, q, 2)
     y = [{b: np.random.default_rng(j * 4 + i).standard_normal(ref[j][b].shape).astype(np.float32)
           for i, b in enumerate(F.BANDS)} for j in range(2)]
-    ATy = ops.v_decompose(rt, [{b: dev(rt, y[j][b]) for b in F.BANDS} for j in range(2)], x.shape, q).get()
+    ATy = ops.decompose_bwd(rt, [{b: dev(rt, y[j][b]) for b in F.BANDS} for j in range(2)], x.shape, q).get()
     lhs = 0.0
     for j in range(2):
         for b in F.BANDS:
@@ -177,14 +177,14 @@ def test_oclgrind_loss_and_grad_with_mask_13x11x3(rt):
 
 @pytest.mark.oclgrind
 def test_oclgrind_short_axes_reflect_repeatedly(rt):
-    # n = 1, 2, 3 < R: every reflection branch of conv_axis / v_conv_axis, plus resampling
+    # n = 1, 2, 3 < R: every reflection branch of conv_axis / conv_axis_bwd, plus resampling
     for shape, axis in (((3, 2, 2), 1), ((3, 2, 2), 0), ((1, 2, 1), 0)):
         x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
         y = np.random.default_rng(axis + 5).standard_normal(shape).astype(np.float32)
         f = np.random.default_rng(7).standard_normal(13).astype(np.float32)
         Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
         np.testing.assert_allclose(Ax, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
-        ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis).get()
+        ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get()
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-5)
         rs = ops.resample_axis(rt, dev(rt, x), 2, axis).get()
         np.testing.assert_allclose(rs, F.resample_axis(x, 2, axis), atol=1e-6)
@@ -192,7 +192,7 @@ def test_oclgrind_short_axes_reflect_repeatedly(rt):
 
 @pytest.mark.oclgrind
 def test_oclgrind_conv_interior_runs(rt):
-    # lines long enough for the 8-element interior runs of conv_axis / v_conv_axis (CONV_RUN),
+    # lines long enough for the 8-element interior runs of conv_axis / conv_axis_bwd (CONV_RUN),
     # with a line length that is not a multiple of 8, along both image axes, accumulating
     f = np.random.default_rng(3).standard_normal(13).astype(np.float32)
     for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0)):
@@ -201,5 +201,5 @@ def test_oclgrind_conv_interior_runs(rt):
         Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
         np.testing.assert_allclose(Ax, F.conv_axis(x, f, axis), rtol=1e-5, atol=1e-5)
         out = dev(rt, x)
-        ATy = ops.v_conv_axis(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
+        ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)

@@ -29,8 +29,7 @@ from endowave_cl.ops.rasterize import ENV_VARIANT, VARIANTS, raster_variant, ras
 from endowave_cl.reference.binning import (bin_gaussians_ref, sort_pairs_ref, tile_grid,  # noqa: E402
                                            tile_ranges_ref)
 from endowave_cl.runtime import get_runtime  # noqa: E402
-
-TILE = 16
+from endowave_cl.layout import TILE  # noqa: E402
 
 
 def synthetic_scene(n, width, height, C=6, seed=0, sigma=(0.5, 6.5), opac=(0.05, 0.6)):

@@ -49,7 +49,8 @@ def main(argv=None):
     import torch
     from endowave_cl.runtime import get_runtime
     from endowave_cl.wavelet import ops
-    from endowave_cl.wavelet.loss import WaveletConfig, torch_decompose, torch_wavelet_loss, wavelet_loss_and_grad
+    from endowave_cl.reference.wavelet import decompose_ref, wavelet_loss_ref
+    from endowave_cl.wavelet.config import WaveletConfig, wavelet_loss_and_grad
 
     cfg = WaveletConfig(levels=args.levels) if args.q is None else WaveletConfig(q=args.q, levels=args.levels)
     rt = get_runtime(args.device)
@@ -68,7 +69,7 @@ def main(argv=None):
         rt.finish()
 
     def cl_adjoint():
-        ops.v_decompose(rt, v_coeffs, (H, W, C), cfg.q)
+        ops.decompose_bwd(rt, v_coeffs, (H, W, C), cfg.q)
         rt.finish()
 
     def cl_loss():
@@ -82,7 +83,7 @@ def main(argv=None):
           f"filter taps={2 * __import__('endowave_cl.wavelet.filters', fromlist=['x']).support_radius(cfg.q) + 1}, "
           f"median of {args.runs} runs after {args.warmup} warm-up")
     rows = [("opencl  transform (2-level decompose)", cl_transform),
-            ("opencl  adjoint (v_decompose)", cl_adjoint),
+            ("opencl  adjoint (decompose_bwd)", cl_adjoint),
             ("opencl  loss + gradient (wavelet_loss_and_grad, masked)", cl_loss)]
     if not args.no_torch:
         rr = torch.tensor(r, requires_grad=True)
@@ -91,17 +92,17 @@ def main(argv=None):
 
         def th_transform():
             with torch.no_grad():
-                torch_decompose(x, cfg.q, cfg.levels)
+                decompose_ref(x, cfg.q, cfg.levels)
 
         def th_loss():
             with torch.no_grad():
-                torch_wavelet_loss(x, tt, mm, cfg)
+                wavelet_loss_ref(x, tt, mm, cfg)
 
         def th_loss_grad():
             rr.grad = None
-            torch_wavelet_loss(rr, tt, mm, cfg).backward()
+            wavelet_loss_ref(rr, tt, mm, cfg).backward()
 
-        rows += [("torch   transform (torch_decompose)", th_transform),
+        rows += [("torch   transform (decompose_ref)", th_transform),
                  ("torch   loss forward", th_loss),
                  ("torch   loss + gradient (autograd)", th_loss_grad)]
     for name, fn in rows:

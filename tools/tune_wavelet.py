@@ -39,7 +39,7 @@ def render(params, H, W, yy, xx):
 
 def fit(target, steps, n_gauss, seed, wcfg, wscale):
     import torch
-    from endowave_cl.wavelet.loss import torch_wavelet_loss
+    from endowave_cl.reference.wavelet import wavelet_loss_ref
     H, W, _ = target.shape
     g = torch.Generator().manual_seed(seed)
     tt = torch.tensor(target)
@@ -60,7 +60,7 @@ def fit(target, steps, n_gauss, seed, wcfg, wscale):
         img = render(params, H, W, yy, xx)
         loss = (img - tt).abs().mean()
         if wcfg is not None:
-            loss = loss + wscale * torch_wavelet_loss(img, tt, None, wcfg)
+            loss = loss + wscale * wavelet_loss_ref(img, tt, None, wcfg)
         loss.backward()
         opt.step()
     with torch.no_grad():

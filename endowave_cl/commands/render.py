@@ -24,7 +24,8 @@ def run(args) -> int:
     from ..gaussians import upload
     from ..progress import progress as progress_bar
     from ..render import render
-    from ..run_io import load_run, write_png_atomic
+    from ..atomic import write_png_atomic
+    from ..run_io import load_run
     from ..runtime import get_runtime
 
     import math

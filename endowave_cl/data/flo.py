@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .atomic import write_bytes_atomic
+from ..atomic import write_bytes_atomic
 
 FLO_MAGIC = 202021.25
 

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from ..errors import DataError
-from .atomic import atomic_directory
+from ..atomic import atomic_directory
 from .flo import read_flow_file
 
 METHODS = ("dis", "deepflow", "tvl1")

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .atomic import atomic_directory, save_png
+from ..atomic import atomic_directory, save_png
 
 FOCAL_PER_WIDTH = 0.8          # f = 0.8 W: about 64 degrees horizontal field of view
 DEPTH_SCALE = 1e-3             # scene units per uint16 depth count (max 65.5 units)

@@ -92,8 +92,6 @@ class DeviceAdam:
         self.params = dict(params)
         self.exp_avg = {n: self._zeros(params[n].shape) for n in PARAM_NAMES}
         self.exp_avg_sq = {n: self._zeros(params[n].shape) for n in PARAM_NAMES}
-        # zero-size pyopencl arrays have no buffer: empty groups get this placeholder
-        self._dummy = cl.Buffer(rt.ctx, cl.mem_flags.READ_WRITE, size=4)
         for n in PARAM_NAMES:  # fail early on a missing lr
             group_lr_layout(n, params[n].shape, self.lrs)
 
@@ -111,7 +109,7 @@ class DeviceAdam:
                 raise EndowaveError(f"Adam: parameter {n!r} must be float32, got {params[n].dtype}")
 
     def _buf(self, arr):
-        return arr.data if arr.size > 0 else self._dummy
+        return self.rt.buf(arr)   # zero-size pyopencl arrays have no buffer: the runtime's placeholder
 
     # -- the update ---------------------------------------------------------------------------
     def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None) -> None:
@@ -133,7 +131,7 @@ class DeviceAdam:
                 if count and (lra != 0.0 or lrb != 0.0):
                     raise EndowaveError(f"Adam: no gradient for parameter group {n!r} (lr is not 0)")
                 count = 0  # nothing to update in this group
-                gbuf = self._dummy
+                gbuf = self.rt.dummy_buffer()
             else:
                 if tuple(g.shape) != tuple(p.shape) or g.dtype != np.float32:
                     raise EndowaveError(f"Adam: gradient of {n!r} has shape {tuple(g.shape)} {g.dtype}, "

@@ -1,30 +1,41 @@
 """Tile binning, tile ranges, and the bin -> sort -> ranges chain (cl/bin.cl).
 
 See docs/ARCHITECTURE.md "bin, sort, ranges".  The rasterizer consumes the output of
-:func:`bin_and_sort`: sorted_values [M] int32 (Gaussian ids, per tile front to back) and
-tile_ranges [n_tiles, 2] int32 (start, end) into it.  The deterministic rasterize adjoint also
+:func:`bin_and_sort`, a :class:`Binned` record: sorted_values [M] int32 (Gaussian ids, per tile
+front to back) and tile_ranges [n_tiles, 2] int32 (start, end) into it.  The deterministic rasterize adjoint also
 takes the binning offsets [N + 1] (Gaussian i's entries were emitted at offsets[i] .. offsets[i+1],
 its rect's tiles row-major), to file per-entry terms by Gaussian without a search.
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 import pyopencl.array as cla
 
+from endowave_cl.layout import TILE, tile_grid  # noqa: F401  (tile_grid: part of this module's API)
 from endowave_cl.ops.scan import exclusive_scan_with_total
 from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
-from endowave_cl.runtime import round_up
 
-TILE = 16        # pixels per tile side (TILE in cl/common.h)
 DEPTH_BITS = 32  # low key bits: the float32 depth's bit pattern
 LOCAL = 64       # work-group size of the one-item-per-element kernels here
 
 
-def tile_grid(width: int, height: int) -> Tuple[int, int]:
-    """(tiles_x, tiles_y) covering a width x height image."""
-    return (int(width) + TILE - 1) // TILE, (int(height) + TILE - 1) // TILE
+class BinEntries(NamedTuple):
+    """What :func:`bin_gaussians` emits (unsorted); unpacks as (keys, values, n_isect, offsets)."""
+    keys: cla.Array        # [M] uint64: tile id << 32 | the float32 depth's bits
+    values: cla.Array      # [M] int32 Gaussian ids
+    n_isect: int           # M, the number of (tile, Gaussian) pairs
+    offsets: cla.Array     # [N + 1] int32: Gaussian i's entries are offsets[i] .. offsets[i + 1]
+
+
+class Binned(NamedTuple):
+    """The binning stage's record (:func:`bin_and_sort`); unpacks as (sorted_values, tile_ranges,
+    n_isect, offsets)."""
+    sorted_values: cla.Array   # [M] int32 Gaussian ids, tile-major then front to back
+    tile_ranges: cla.Array     # [n_tiles, 2] int32 (start, end) of each tile's run; (0, 0) if empty
+    n_isect: int               # M
+    offsets: cla.Array         # [N + 1] int32 binning offsets (see BinEntries)
 
 
 def key_bits(n_tiles: int) -> int:
@@ -33,14 +44,12 @@ def key_bits(n_tiles: int) -> int:
 
 
 def _launch(rt, name, n, *args):
-    k = rt.kernel("bin.cl", name)
-    k(rt.queue, (round_up(n, LOCAL),), (LOCAL,), *args)
+    rt.launch_1d(rt.kernel("bin.cl", name), n, LOCAL, *args)
 
 
 def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
-                  tiles_touched: cla.Array, tiles_x: int, tiles_y: int
-                  ) -> Tuple[cla.Array, cla.Array, int, cla.Array]:
-    """(keys [M] uint64, values [M] int32, M, offsets [N + 1] int32): for each Gaussian with
+                  tiles_touched: cla.Array, tiles_x: int, tiles_y: int) -> BinEntries:
+    """BinEntries(keys [M] uint64, values [M] int32, M, offsets [N + 1] int32): for each Gaussian with
     radius > 0, one entry per tile of its rect, row-major, at offsets[i] (the exclusive scan of
     tiles_touched; offsets[N] = M).
 
@@ -50,7 +59,7 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     n = int(depth.size)
     q = rt.queue
     if n == 0:
-        return cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32)
+        return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32))
     counts = cla.empty(q, n, np.int32)  # [N]
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, np.int32(n), counts.data)
     offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
@@ -60,7 +69,7 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     if m > 0:
         _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
                 np.int32(n), np.int32(tiles_x), keys.data, values.data)
-    return keys, values, m, offsets
+    return BinEntries(keys, values, m, offsets)
 
 
 def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
@@ -74,12 +83,16 @@ def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
 
 
 def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles_touched: cla.Array,
-                 width: int, height: int, sort_config: Optional[SortConfig] = None
-                 ) -> Tuple[cla.Array, cla.Array, int, cla.Array]:
-    """(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M, offsets [N + 1] int32) for a
-    width x height image: scan -> bin -> radix sort of the needed key bits -> ranges."""
+                 width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:
+    """Binned(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M, offsets [N + 1] int32) for
+    a width x height image: scan -> bin -> radix sort of the needed key bits -> ranges."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     keys, values, m, offsets = bin_gaussians(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y)
     sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, key_bits(n_tiles), sort_config)
-    return sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m, offsets
+    return Binned(sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m, offsets)
+
+
+def bin_projected(rt, proj, width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:
+    """:func:`bin_and_sort` of the projection record proj (ops.project.Projected)."""
+    return bin_and_sort(rt, proj.rect, proj.depth, proj.radius, proj.tiles_touched, width, height, sort_config)

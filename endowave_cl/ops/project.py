@@ -12,11 +12,9 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
-from ..runtime import round_up
+from ..layout import CAM_SIZE, CHANNELS, tile_grid
 
-TILE = 16
 WORK_GROUP = 64        # work-items per group; one work-item per Gaussian
-CAM_SIZE = 20          # floats in the camera buffer (layout: CAM_* in cl/project4d_common.h)
 
 
 @dataclass
@@ -29,23 +27,11 @@ class Projected:
     features: cla.Array       # [N, C] float32 [r, g, b, depth, flow_x, flow_y]
     rect: cla.Array           # [N, 4] int32 (x0, y0, x1, y1) exclusive, in tiles
     tiles_touched: cla.Array  # [N] int32
+    camera: object = None      # the camera projected with ...
+    camera_buf: object = None  # ... and its device buffer: project4d_bwd reuses it for the same camera
 
     def __len__(self) -> int:
         return int(self.radius.shape[0])
-
-
-_POOLS: Dict[int, object] = {}
-
-
-def _allocator(rt):
-    """A memory pool per runtime: output and gradient buffers are reused across calls once the
-    previous call's arrays are freed (a fresh 60 MB buffer per call costs more than the kernel on
-    PoCL, which allocates and faults in new buffers on first use)."""
-    pool = _POOLS.get(id(rt))
-    if pool is None:
-        from pyopencl.tools import ImmediateAllocator, MemoryPool
-        pool = _POOLS[id(rt)] = MemoryPool(ImmediateAllocator(rt.queue))
-    return pool
 
 
 def _dims(params):
@@ -81,7 +67,7 @@ def camera_buffer(rt, camera) -> cla.Array:
 
 
 def _tiles(camera):
-    return (camera.width + TILE - 1) // TILE, (camera.height + TILE - 1) // TILE
+    return tile_grid(camera.width, camera.height)
 
 
 def _check_params(params, n):
@@ -92,11 +78,11 @@ def _check_params(params, n):
 
 
 def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Optional[float] = None,
-              channels: int = 6) -> Projected:
+              channels: int = CHANNELS) -> Projected:
     """Project every Gaussian at time t (flow to t_flow when given); see docs/ARCHITECTURE.md."""
     n, nt, K, degree = _dims(params)
     q = rt.queue
-    al = _allocator(rt)
+    al = rt.pool()
     f32, i32 = np.float32, np.int32
     out = Projected(
         means2d=cla.empty(q, (n, 2), f32, allocator=al), conic=cla.empty(q, (n, 3), f32, allocator=al),
@@ -108,14 +94,15 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     _check_params(params, n)
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
+    out.camera, out.camera_buf = camera, cam
     k = rt.kernel("project4d.cl", "project4d", _options(rt, degree, nt, channels))
-    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
-      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
-      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
-      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
-      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
-      out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
-      out.features.data, out.rect.data, out.tiles_touched.data)
+    rt.launch_1d(k, n, WORK_GROUP,
+                 np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+                 params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+                 cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+                 np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+                 out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
+                 out.features.data, out.rect.data, out.tiles_touched.data)
     return out
 
 
@@ -130,7 +117,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     """
     n, nt, K, degree = _dims(params)
     q = rt.queue
-    al = _allocator(rt)
+    al = rt.pool()
     shapes = {"v_means": (n, 4), "v_scales": (n, 4), "v_quat_l": (n, 4), "v_quat_r": (n, 4),
               "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
     grads = {k: cla.empty(q, s, np.float32, allocator=al) for k, s in shapes.items()}
@@ -139,14 +126,14 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     _check_params(params, n)
     channels = int(v_features.shape[1])
     tiles_x, tiles_y = _tiles(camera)
-    cam = camera_buffer(rt, camera)
+    cam = proj.camera_buf if proj.camera is camera and proj.camera_buf is not None else camera_buffer(rt, camera)
     k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
-    k(q, (round_up(n, WORK_GROUP),), (WORK_GROUP,),
-      np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
-      params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
-      cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
-      np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
-      proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
-      grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
-      grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
+    rt.launch_1d(k, n, WORK_GROUP,
+                 np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
+                 params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+                 cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
+                 np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
+                 proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
+                 grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
+                 grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
     return grads

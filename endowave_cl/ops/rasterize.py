@@ -2,25 +2,23 @@
 
 Kernels: cl/rasterize.cl, cl/rasterize_bwd.cl, cl/densify_stats.cl, and the explicit-SIMD
 cl/rasterize_vec.cl, cl/rasterize_vec_bwd.cl for CPU drivers (see ``raster_variant``).  References (same names):
-endowave_cl/reference/rasterize.py, whose constants (ALPHA_MAX, ALPHA_MIN, T_STOP) are passed to the
-kernels as build options so both sides use the same values.
+endowave_cl/reference/rasterize.py.  The compositing constants (ALPHA_MAX, ALPHA_MIN, T_STOP) come
+from endowave_cl/layout.py and are passed to the kernels as build options, so both sides use the
+same values.
 """
 from __future__ import annotations
 
 import os
 import sys
-import weakref
 from dataclasses import dataclass
 from typing import Dict
 
 import numpy as np
 
 from ..errors import EndowaveError
-from ..reference.rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP
+from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid
 from ..probe import ENV_PLANT
-from ..runtime import ENV_CACHE_DIR, round_up
-
-TILE = 16
+from ..runtime import ENV_CACHE_DIR
 
 
 def _f32_literal(x: float) -> str:
@@ -65,9 +63,6 @@ class RasterChoice:
         return "scalar kernel" if self.variant == "scalar" else f"vector kernel, {self.vw} lanes"
 
 
-_CHOICES: Dict[tuple, RasterChoice] = {}
-
-
 def _forced():
     v = os.environ.get(ENV_VARIANT, "").strip().lower()
     if v and v not in VARIANTS:
@@ -87,8 +82,9 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
     forced_v, forced_w, forced_bw = _forced()
-    key = (id(rt), int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR), os.environ.get(ENV_PLANT))
-    ch = _CHOICES.get(key)
+    key = ("raster_choice", int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR),
+           os.environ.get(ENV_PLANT))
+    ch = rt.cache.get(key)
     if ch is None:
         ch, notes, failed = explain_choice(rt, C)
         if ch is None:
@@ -100,7 +96,7 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
             print(f"endowave-cl: {rt.name}: rasterizer runs the {ch.describe()} ({'; '.join(failed)}); "
                   f"verdicts in {probe_dir()}, {ENV_VEC_WIDTH} / {ENV_VARIANT} force one",
                   file=sys.stderr, flush=True)
-        _CHOICES[key] = ch
+        rt.cache[key] = ch
     return ch
 
 
@@ -231,23 +227,14 @@ class RasterOut:
     rec: "object" = None  # [N, REC4, 4] float32 records of the vector variant (reused by its adjoint)
 
 
-_DUMMY = weakref.WeakKeyDictionary()   # Runtime -> 4-byte buffer
-
-
 def _buf(rt, arr):
-    """arr's buffer, or a 4-byte dummy for empty/absent arrays (pyopencl gives empty ones no buffer)."""
-    if arr is not None and arr.size > 0:
-        return arr.data
-    d = _DUMMY.get(rt)
-    if d is None:
-        d = rt.cl.Buffer(rt.ctx, rt.cl.mem_flags.READ_WRITE, 4)
-        _DUMMY[rt] = d
-    return d
+    """arr's buffer, or the runtime's placeholder for empty/absent arrays (pyopencl gives empty
+    ones no buffer)."""
+    return rt.buf(arr)
 
 
 def _grid(width: int, height: int):
-    tiles_x = (width + TILE - 1) // TILE
-    tiles_y = (height + TILE - 1) // TILE
+    tiles_x, tiles_y = tile_grid(width, height)
     return tiles_x, tiles_y, (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
 
 
@@ -287,15 +274,15 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
         rec = _vec_records(rt, means2d, conic, opac, features, opts)
         k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
         gsize, lsize = _vec_grid(width, height, ch)
-        k(q, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
-          np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+        rt.launch(k, gsize, lsize, _buf(rt, rec), _buf(rt, sorted_values), tile_ranges.data, np.int32(width),
+                  np.int32(height), np.int32(tiles_x), res.out.data, res.alpha.data, res.T_final.data, res.last.data)
         res.rec = rec
         return res
     _check_local(rt, fwd_local_bytes(C), "rasterize", C)
     k = rt.kernel("rasterize.cl", "rasterize", _options(C))
-    k(q, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
-      _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
-      res.out.data, res.alpha.data, res.T_final.data, res.last.data)
+    rt.launch(k, gsize, lsize, _buf(rt, means2d), _buf(rt, conic), _buf(rt, opac), _buf(rt, features),
+              _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+              res.out.data, res.alpha.data, res.T_final.data, res.last.data)
     return res
 
 
@@ -320,8 +307,8 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
     rec = cla.empty(rt.queue, (N, rec4, 4), np.float32)
     kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
     wg = 64
-    kp(rt.queue, (round_up(N, wg),), (wg,), means2d.data, conic.data, opac.data, features.data,
-       np.int32(N), rec.data)
+    rt.launch_1d(kp, N, wg, means2d.data, conic.data, opac.data, features.data,
+                 np.int32(N), rec.data)
     return rec
 
 
@@ -368,29 +355,40 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
             rec = _vec_records(rt, means2d, conic, opac, features, vec_options(C, ch))
         k = rt.kernel("rasterize_vec_bwd.cl", "rasterize_vec_bwd", vec_bwd_options(rt, C, ch, det))
         gsize, lsize = _vec_grid(width, height, ch)
-        k(q, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
-          np.int32(width), np.int32(height), np.int32(tiles_x),
-          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+        rt.launch(k, gsize, lsize, rec.data, _buf(rt, sorted_values), tile_ranges.data,
+                  np.int32(width), np.int32(height), np.int32(tiles_x),
+                  raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+                  grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
-        k(q, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
-          tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
-          raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
-          grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-          _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+        rt.launch(k, gsize, lsize, means2d.data, conic.data, opac.data, features.data, _buf(rt, sorted_values),
+                  tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
+                  raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
+                  grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
+                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
     if det:
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        kg(q, (round_up(N, wg),), (wg,), v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
-           grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
+        rt.launch_1d(kg, N, wg, v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
+                     grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 
 
-# The name the architecture uses for the adjoint.
-v_rasterize = rasterize_bwd
+def rasterize_projected(rt, proj, binned, width: int, height: int, choice: RasterChoice = None) -> RasterOut:
+    """``rasterize`` of the stage records: proj (ops.project.Projected), binned (ops.binning.Binned)."""
+    return rasterize(rt, proj.means2d, proj.conic, proj.opac, proj.features, binned.sorted_values,
+                     binned.tile_ranges, width, height, choice)
+
+
+def rasterize_projected_bwd(rt, proj, binned, raster: RasterOut, v_out, v_alpha, width: int, height: int,
+                            deterministic: bool = False, choice: RasterChoice = None) -> Dict[str, "object"]:
+    """``rasterize_bwd`` of the stage records (as rasterize_projected); deterministic: a bool, the
+    rects and binning offsets it needs are taken from proj and binned."""
+    return rasterize_bwd(rt, proj.means2d, proj.conic, proj.opac, proj.features, binned.sorted_values,
+                         binned.tile_ranges, width, height, raster, v_out, v_alpha,
+                         deterministic=(proj.rect, binned.offsets) if deterministic else None, choice=choice)
 
 
 def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
@@ -405,5 +403,5 @@ def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, gra
         return
     k = rt.kernel("densify_stats.cl", "accumulate_densify_stats")
     wg = 64
-    k(rt.queue, (round_up(N, wg),), (wg,), v_means2d.data, radius.data, np.float32(0.5 * width),
-      np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)
+    rt.launch_1d(k, N, wg, v_means2d.data, radius.data, np.float32(0.5 * width),
+                 np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)

@@ -10,8 +10,6 @@ from typing import Tuple
 import numpy as np
 import pyopencl.array as cla
 
-from endowave_cl.runtime import round_up
-
 SCAN_WG = 256     # work-items per group (power of two)
 SCAN_ITEMS = 8    # consecutive values per work-item
 SCAN_BLOCK = SCAN_WG * SCAN_ITEMS
@@ -32,14 +30,14 @@ def exclusive_scan_into(rt, x: cla.Array, n_in: int, out: cla.Array, n_out: int)
     n_groups = (n_out + SCAN_BLOCK - 1) // SCAN_BLOCK
     sums = cla.empty(rt.queue, n_groups, np.int32)  # [n_groups]
     k = rt.kernel("scan.cl", "scan_blocks", _options())
-    k(rt.queue, (n_groups * SCAN_WG,), (SCAN_WG,), x.data if n_in > 0 else sums.data,
-      np.int32(n_in), out.data, np.int32(n_out), sums.data)
+    rt.launch(k, (n_groups * SCAN_WG,), (SCAN_WG,), x.data if n_in > 0 else sums.data,
+              np.int32(n_in), out.data, np.int32(n_out), sums.data)
     if n_groups > 1:
         offs = cla.empty(rt.queue, n_groups, np.int32)  # [n_groups]
         exclusive_scan_into(rt, sums, n_groups, offs, n_groups)
         add = rt.kernel("scan.cl", "scan_add_offsets", _options())
         wg = min(SCAN_WG, rt.max_work_group_size)
-        add(rt.queue, (round_up(n_out, wg),), (wg,), out.data, np.int32(n_out), offs.data)
+        rt.launch_1d(add, n_out, wg, out.data, np.int32(n_out), offs.data)
 
 
 def exclusive_scan_with_total(rt, x: cla.Array) -> cla.Array:

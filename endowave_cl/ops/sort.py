@@ -95,10 +95,10 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     for p in range(passes):
         shift = np.int32(p * cfg.radix_bits)
         dst_k, dst_v = bufs[p % 2]
-        k_hist(q, gsize, lsize, src_k.data, np.int32(n), np.int32(items), shift,
-               np.int32(n_blocks), hist.data)
+        rt.launch(k_hist, gsize, lsize, src_k.data, np.int32(n), np.int32(items), shift,
+                  np.int32(n_blocks), hist.data)
         exclusive_scan_into(rt, hist, hist.size, offsets, offsets.size)
-        k_scatter(q, gsize, lsize, src_k.data, src_v.data, np.int32(n), np.int32(items), shift,
+        rt.launch(k_scatter, gsize, lsize, src_k.data, src_v.data, np.int32(n), np.int32(items), shift,
                   np.int32(n_blocks), offsets.data, dst_k.data, dst_v.data)
         src_k, src_v = dst_k, dst_v
     return src_k, src_v

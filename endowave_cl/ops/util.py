@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..runtime import round_up
-
 WORK_GROUP = 128
 
 
@@ -16,5 +14,5 @@ def any_nonfinite(rt, arrays) -> bool:
     for a in arrays:
         if a.size == 0:
             continue
-        k(rt.queue, (round_up(a.size, WORK_GROUP),), (WORK_GROUP,), a.data, np.int32(a.size), flag.data)
+        rt.launch_1d(k, a.size, WORK_GROUP, a.data, np.int32(a.size), flag.data)
     return bool(flag.get()[0])

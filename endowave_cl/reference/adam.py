@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def adam_step(param: np.ndarray, grad: np.ndarray, exp_avg: np.ndarray, exp_avg_sq: np.ndarray,
+def adam_step_ref(param: np.ndarray, grad: np.ndarray, exp_avg: np.ndarray, exp_avg_sq: np.ndarray,
               lr: np.ndarray, step: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15):
     """One Adam step of one group in float64; returns (param, exp_avg, exp_avg_sq) as float32.
 

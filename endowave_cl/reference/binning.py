@@ -1,13 +1,11 @@
-"""numpy reference of tile binning, sorting and tile ranges (docs/ARCHITECTURE.md)."""
+"""numpy references of tile binning and tile ranges (docs/ARCHITECTURE.md); the sort's are in
+reference/sort.py (sort_pairs_ref is re-exported here)."""
 from __future__ import annotations
 
 import numpy as np
 
-TILE = 16
-
-
-def tile_grid(width: int, height: int, tile: int = TILE):
-    return (width + tile - 1) // tile, (height + tile - 1) // tile
+from ..layout import TILE, tile_grid  # noqa: F401  (re-exported: tests and tools take them from here)
+from .sort import sort_pairs_ref  # noqa: F401  (re-exported: probe.py, tests and tools take it from here)
 
 
 def bin_gaussians_ref(rect: np.ndarray, depth: np.ndarray, radius: np.ndarray, tiles_x: int):
@@ -35,11 +33,6 @@ def bin_offsets_ref(rect: np.ndarray, radius: np.ndarray) -> np.ndarray:
     area = np.maximum(rect[:, 2] - rect[:, 0], 0) * np.maximum(rect[:, 3] - rect[:, 1], 0)
     counts = np.where(np.asarray(radius) > 0, area, 0)
     return np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
-
-
-def sort_pairs_ref(keys: np.ndarray, values: np.ndarray):
-    order = np.argsort(keys, kind="stable")
-    return keys[order], values[order]
 
 
 def tile_ranges_ref(sorted_keys: np.ndarray, n_tiles: int) -> np.ndarray:

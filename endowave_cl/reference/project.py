@@ -25,8 +25,8 @@ from typing import Dict, Optional
 import torch
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
+from ..layout import TILE, tile_grid
 
-TILE = 16
 LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
 SIGMA_TT_MIN = 1e-12   # temporal variance below this (std 1e-6 of the sequence) is degenerate: culled
 RADIUS_MAX = 1 << 30   # the stored int radius saturates here (the rect uses the float radius)
@@ -172,7 +172,7 @@ def _project_all(params, camera, t, t_flow, channels):
         proj2 = torch.stack([fx * p2[:, 0] / z2 + cx, fy * p2[:, 1] / z2 + cy], -1)
         flow = proj2 - means2d
         # a runaway flow (beyond the image size, in tiles) counts as undefined too
-        flow_max = TILE * max(-(-int(camera.width) // TILE), -(-int(camera.height) // TILE))
+        flow_max = TILE * max(tile_grid(camera.width, camera.height))
         ok2 = ok2 & (flow.abs() <= flow_max).all(-1)
         flow = torch.where(ok2[:, None], flow, torch.zeros_like(means2d))
     else:
@@ -189,7 +189,7 @@ def _project_all(params, camera, t, t_flow, channels):
 
 def _radius_rect(means2d, lmax, width, height):
     """Integer radius [N] and tile rect [N, 4] from float32-rounded values (as the kernel)."""
-    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    tiles_x, tiles_y = tile_grid(width, height)
     m2 = means2d.detach().to(torch.float32)
     r = torch.ceil(3.0 * torch.sqrt(lmax.detach().to(torch.float32)))
     x0 = torch.clamp(torch.floor((m2[:, 0] - r) / TILE), 0, tiles_x)

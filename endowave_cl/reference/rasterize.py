@@ -11,7 +11,7 @@ last contributor, relative to the tile's range start; 0 when nothing contributed
 ``rasterize_ref`` walks the sorted (tile, depth) list; ``rasterize_dense_ref`` does not use it: for
 each tile it selects every Gaussian whose tile rect holds the tile and orders them by (depth, index).
 Both are differentiable with torch autograd w.r.t. means2d, conic, opac, features (that gives the
-reference adjoint ``v_rasterize_ref``). ``accumulate_densify_stats_ref`` is the numpy reference of
+reference adjoint ``rasterize_bwd_ref``). ``accumulate_densify_stats_ref`` is the numpy reference of
 the densification statistics.
 """
 from __future__ import annotations
@@ -21,11 +21,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .binning import TILE, tile_grid
-
-ALPHA_MAX = 0.99          # alpha clamp (3DGS): keeps 1 - alpha >= 0.01 so T can be divided back
-ALPHA_MIN = 1.0 / 255.0   # contributions below one 8-bit level are skipped
-T_STOP = 1e-4             # a pixel stops once its transmittance would fall below this
+from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid  # noqa: F401  (constants: endowave_cl/layout.py)
 
 
 def _as_t(x, dtype=torch.float32):
@@ -147,10 +143,6 @@ def rasterize_bwd_ref(means2d, conic, opac, features, sorted_values, tile_ranges
     names = ("v_means2d", "v_conic", "v_opac", "v_features")
     return {n: (g.numpy() if g is not None else np.zeros_like(leaf.detach().numpy()))
             for n, g, leaf in zip(names, grads, leaves)}
-
-
-# The name the architecture uses for the adjoint reference.
-v_rasterize_ref = rasterize_bwd_ref
 
 
 def accumulate_densify_stats_ref(v_means2d, radius, width, height, grad_accum, count, max_radius):

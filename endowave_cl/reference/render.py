@@ -8,8 +8,7 @@ from __future__ import annotations
 from typing import Dict, Optional
 
 from ..camera import Camera
-
-CHANNELS = 6
+from ..layout import CHANNELS, DEPTH, FLOW, RGB
 
 
 def render_ref(params: Dict[str, "object"], camera: Camera, t: float, t_flow: Optional[float] = None) -> Dict:
@@ -21,4 +20,4 @@ def render_ref(params: Dict[str, "object"], camera: Camera, t: float, t_flow: Op
     p = project4d_ref(params, camera, t, t_flow, channels=CHANNELS)
     out, alpha, _T, _last = rasterize_dense_ref(p["means2d"], p["conic"], p["opac"], p["features"], p["depth"],
                                                 p["rect"], camera.width, camera.height)
-    return {"image": out[..., 0:3], "depth": out[..., 3], "flow": out[..., 4:6], "alpha": alpha}
+    return {"image": out[..., RGB], "depth": out[..., DEPTH], "flow": out[..., FLOW], "alpha": alpha}

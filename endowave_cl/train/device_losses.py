@@ -1,6 +1,6 @@
 """The training step's image losses on the device (kernels in cl/image_loss.cl).
 
-``image_losses_and_grad`` computes what ``losses.image_losses`` (the torch reference, whose module
+``image_losses_and_grad`` computes what ``reference/losses.py::image_losses_ref`` (the torch reference, whose module
 doc gives the definitions and choices) computes, plus the rational-wavelet term, from the rendered
 feature image that stays on the device, and returns the gradient image for the adjoints: nothing
 but a handful of loss sums crosses to the host.
@@ -15,14 +15,13 @@ but a handful of loss sums crosses to the host.
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from ..runtime import round_up
-from .losses import FLOW_HUBER_DELTA, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window_1d
+from ..loss_constants import FLOW_HUBER_DELTA, gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -46,7 +45,7 @@ class DeviceTargets:
 
 def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
                     flow: Optional[np.ndarray] = None, flow_valid: Optional[np.ndarray] = None) -> DeviceTargets:
-    """Upload a frame's targets (numpy, channel-last) with the weight maps of losses.image_losses."""
+    """Upload a frame's targets (numpy, channel-last) with the weight maps of image_losses_ref (reference/losses.py)."""
     import pyopencl.array as cla
 
     def up(a):
@@ -65,19 +64,11 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     return t
 
 
-_WINDOWS = weakref.WeakKeyDictionary()   # Runtime -> the SSIM window on its device
-
-
 def _window(rt) -> object:
-    """The SSIM window (losses.py's 1D Gaussian) as a float32 device array, cached per runtime."""
-    w = _WINDOWS.get(rt)
-    if w is None:
-        import pyopencl.array as cla
-        import torch
-        g = _gaussian_window_1d(SSIM_WINDOW, SSIM_SIGMA, torch.float64, "cpu").numpy()
-        w = cla.to_device(rt.queue, g.astype(np.float32))  # symmetric: its own reverse
-        _WINDOWS[rt] = w
-    return w
+    """The SSIM window (loss_constants.gaussian_window_1d) as a float32 device array, cached per runtime."""
+    import pyopencl.array as cla
+    # symmetric: its own reverse
+    return rt.cached("ssim.window", lambda: cla.to_device(rt.queue, gaussian_window_1d().astype(np.float32)))
 
 
 def _blur(rt, x, window) -> object:
@@ -92,7 +83,7 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
 
     cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet); channels: {"depth": k,
     "flow": k} (the colour is channels 0..2).  Terms whose targets are missing are left out, as
-    in losses.image_losses.  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
+    in image_losses_ref (reference/losses.py).  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
     """
     import pyopencl as cl
     import pyopencl.array as cla
@@ -113,8 +104,8 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     gsize = (round_up(max(npix, 1), LOCAL),)
 
     maps = cla.empty(q, (H, W, NMAP), np.float32)
-    rt.kernel(KFILE, "ssim_stack", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
-                                         np.int32(npix), maps.data)
+    rt.launch(rt.kernel(KFILE, "ssim_stack", opts), gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
+              np.int32(npix), maps.data)
     blurred = _blur(rt, maps, window)
 
     v = cla.empty(q, (H, W, CF), np.float32)
@@ -133,19 +124,19 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
         np.float32(getattr(cfg, "flow_huber_delta", FLOW_HUBER_DELTA)), np.int32(npix),
         v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
     gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
-    rt.kernel(KFILE, "ssim_grad_combine", opts)(q, gsize, (LOCAL,), features.data, tgt.image.data,
-                                                tgt.mask.data, gb.data, np.int32(npix), v.data)
+    rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,
+              tgt.mask.data, gb.data, np.int32(npix), v.data)
 
     parts: Dict[str, float] = {}
     wavelet = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
-        from ..wavelet.loss import wavelet_loss_and_grad
+        from ..wavelet.config import wavelet_loss_and_grad
         rgb = cla.empty(q, (H, W, 3), np.float32)
-        rt.kernel(KFILE, "take_rgb", opts)(q, gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
+        rt.launch(rt.kernel(KFILE, "take_rgb", opts), gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
         wavelet, v_rgb = wavelet_loss_and_grad(rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None,
                                                wavelet_config)
-        rt.kernel(KFILE, "add_rgb", opts)(q, gsize, (LOCAL,), v.data, v_rgb.data,
-                                          np.float32(cfg.lambda_wavelet), np.int32(npix))
+        rt.launch(rt.kernel(KFILE, "add_rgb", opts), gsize, (LOCAL,), v.data, v_rgb.data,
+                  np.float32(cfg.lambda_wavelet), np.int32(npix))
 
     s = partial.get().astype(np.float64).sum(axis=0)   # [NSUM]
     l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb

@@ -1,5 +1,7 @@
-"""The rational-wavelet loss: device entry point for the trainer, a torch autograd Function backed
-by the OpenCL kernels, and a pure-torch implementation of the same function.
+"""The rational-wavelet loss for torch users: an autograd Function backed by the OpenCL kernels and an
+nn.Module over it or over the pure-torch reference (reference/wavelet.py: wavelet_loss_ref).
+WaveletConfig and the device entry point wavelet_loss_and_grad live in config.py, torch-free, and
+are re-exported here.
 
     L = sum_{j < levels} sum_{x in LL, LH, HL, HH} lambda_x * mean((W_x^j(m t) - W_x^j(m r))^2)
 
@@ -9,138 +11,11 @@ band, so every band of every level counts by its average squared error whatever 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
-
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from .filters import BAND_FILTERS, BANDS, design_filters, rational_factor, reflect_index, resampled_length
-
-BORDERS = ("reflect",)
-
-
-@dataclass
-class WaveletConfig:
-    """Settings of the rational-wavelet loss.
-
-    q:       a = (q + 1) / q.  Default 2: a = 3/2, sigma = 2/3, 13 taps (R = 6), the smallest
-             truly rational factor.  In tools/tune_wavelet.py q = 1 (dyadic) and q = 2 tie within
-             the seed noise (docs/WAVELET.md); q = 2 is kept as the paper's rational design.
-    levels:  decomposition depth; the paper uses two.
-    weights: (lambda_LL, lambda_LH, lambda_HL, lambda_HH), the weight of each band's mean squared
-             coefficient error, the same at every level.  Default (0, 32, 32, 32): in the tuning
-             experiment any LL weight lowered PSNR (the L1 term already fits low frequencies; LL
-             of level 1 still feeds level 2's detail bands) and an overall detail weight of 16-64
-             was best.  They are absolute, scaled so the term is of the order of an L1 image
-             loss: add it to L1 (or 0.8 L1 + 0.2 D-SSIM) with weight 1.
-    border:  "reflect": whole-sample symmetric extension (-1 -> 1, N -> N - 2) at every border;
-             the only rule the kernels implement.
-    """
-    q: int = 2
-    levels: int = 2
-    weights: Tuple[float, float, float, float] = (0.0, 32.0, 32.0, 32.0)
-    border: str = "reflect"
-
-    def __post_init__(self):
-        rational_factor(self.q)  # validates q
-        if int(self.levels) < 1:
-            raise ValueError(f"levels must be >= 1, got {self.levels}")
-        self.weights = tuple(float(w) for w in self.weights)
-        if len(self.weights) != 4:
-            raise ValueError("weights must be (lambda_LL, lambda_LH, lambda_HL, lambda_HH)")
-        if self.border not in BORDERS:
-            raise ValueError(f"border must be one of {BORDERS}, got {self.border!r}")
-
-    @property
-    def a(self) -> float:
-        p, q = rational_factor(self.q)
-        return p / q
-
-
-# ---------------------------------------------------------------------------------------------
-# device entry point (the trainer's interface)
-# ---------------------------------------------------------------------------------------------
-
-def wavelet_loss_and_grad(rt, rendered, target, mask=None, config: WaveletConfig = WaveletConfig()):
-    """(loss: float, v_rendered: cla.Array [H, W, C]) on the device.
-
-    rendered, target: pyopencl arrays [H, W, C] float32 (any H, W, C); mask: [H, W] float32 or None.
-    The mask multiplies both images before the transform; v_rendered already includes it.
-    """
-    from .ops import loss_and_grad
-    return loss_and_grad(rt, rendered, target, mask, config.q, config.levels, config.weights)
-
-
-def wavelet_transform(rt, img, config: WaveletConfig = WaveletConfig()):
-    """Device transform of img [H, W, C]: a list over levels of {band: cla.Array [H_j, W_j, C]}."""
-    from .ops import decompose
-    return decompose(rt, img, config.q, config.levels)
-
-
-# ---------------------------------------------------------------------------------------------
-# pure torch (any device, any float dtype; autograd gives the adjoint)
-# ---------------------------------------------------------------------------------------------
-
-def torch_conv_axis(x: torch.Tensor, f, axis: int) -> torch.Tensor:
-    """Convolution along axis with the odd-length filter f, reflect border (as cl conv_axis)."""
-    f = torch.as_tensor(np.asarray(f, dtype=np.float64), dtype=x.dtype, device=x.device)
-    L = f.numel()
-    R = L // 2
-    xt = x.movedim(axis, -1)
-    lead = xt.shape[:-1]
-    n = xt.shape[-1]
-    idx = torch.as_tensor(reflect_index(np.arange(-R, n + R), n), device=x.device)
-    padded = xt.reshape(-1, 1, n).index_select(-1, idx)               # [B, 1, n + 2R]
-    out = F.conv1d(padded, f.flip(0).view(1, 1, L))                     # [B, 1, n]
-    return out.reshape(*lead, n).movedim(-1, axis)
-
-
-def torch_resample_axis(x: torch.Tensor, q: int, axis: int) -> torch.Tensor:
-    """Rational resampling by a = (q + 1) / q along axis (as cl resample_axis)."""
-    p, q = rational_factor(q)
-    n = x.shape[axis]
-    n_out = resampled_length(n, q)
-    j = np.arange(n_out) * p
-    i0 = j // q
-    w = torch.as_tensor((j - i0 * q) / q, dtype=x.dtype, device=x.device)
-    i1 = np.minimum(i0 + 1, n - 1)
-    x0 = x.index_select(axis, torch.as_tensor(i0, device=x.device))
-    x1 = x.index_select(axis, torch.as_tensor(i1, device=x.device))
-    shape = [1] * x.dim()
-    shape[axis] = n_out
-    w = w.view(shape)
-    return x0 * (1 - w) + x1 * w
-
-
-def torch_decompose(img: torch.Tensor, q: int, levels: int = 2) -> List[Dict[str, torch.Tensor]]:
-    """J-level transform of img [H, W, C] in torch."""
-    filt = design_filters(q)
-    out = []
-    cur = img
-    for _ in range(int(levels)):
-        rows = {k: torch_resample_axis(torch_conv_axis(cur, filt[k], 1), q, 1) for k in ("h0", "h1", "g")}
-        bands = {}
-        for band in BANDS:
-            fr, fc = BAND_FILTERS[band]
-            bands[band] = torch_resample_axis(torch_conv_axis(rows[fr], filt[fc], 0), q, 0)
-        out.append(bands)
-        cur = bands["LL"]
-    return out
-
-
-def torch_wavelet_loss(rendered: torch.Tensor, target: torch.Tensor, mask: Optional[torch.Tensor] = None,
-                       config: WaveletConfig = WaveletConfig()) -> torch.Tensor:
-    """The same loss in pure torch; rendered, target [H, W, C], mask [H, W] or None."""
-    d = rendered - target  # the transform is linear: W(t) - W(r) = -W(r - t)
-    if mask is not None:
-        d = d * mask.unsqueeze(-1)
-    total = d.new_zeros(())
-    for bands in torch_decompose(d, config.q, config.levels):
-        for band, lam in zip(BANDS, config.weights):
-            total = total + lam * bands[band].square().mean()
-    return total
+from ..reference.wavelet import wavelet_loss_ref
+from .config import BORDERS, WaveletConfig, wavelet_loss_and_grad  # noqa: F401  (re-exported)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -209,7 +84,7 @@ class RationalWaveletLoss(torch.nn.Module):
 
     def _one(self, r, t, m):
         if self.backend == "torch":
-            return torch_wavelet_loss(r, t, m, self.config)
+            return wavelet_loss_ref(r, t, m, self.config)
         return WaveletLossFunction.apply(r, t, m, self.config, self.rt)
 
     def forward(self, rendered, target, mask=None):

@@ -4,11 +4,11 @@ Every op takes and returns C-contiguous float32 ``pyopencl.array.Array``s.  Conv
 border rule, resampler, band definitions) are those of :mod:`endowave_cl.wavelet.filters`.
 
 Axis-generic ops run along one axis of an array of any rank:
-  conv_axis / v_conv_axis         convolution with an odd-length filter, reflect border
-  resample_axis / v_resample_axis rational resampling by a = (q + 1) / q
+  conv_axis / conv_axis_bwd           convolution with an odd-length filter, reflect border
+  resample_axis / resample_axis_bwd   rational resampling by a = (q + 1) / q
 Image-level ops, images channel-last [H, W, C]:
-  decompose(rt, img, q, levels)   -> [{"LL","LH","HL","HH": [H_j, W_j, C]} for each level j]
-  v_decompose(rt, v_coeffs, shape, q) -> v_img [H, W, C]   (the adjoint of decompose)
+  decompose(rt, img, q, levels)         -> [{"LL","LH","HL","HH": [H_j, W_j, C]} for each level j]
+  decompose_bwd(rt, v_coeffs, shape, q) -> v_img [H, W, C]   (the adjoint of decompose)
   loss_and_grad(rt, rendered, target, mask, q, levels, weights) -> (loss, v_rendered)
 """
 from __future__ import annotations
@@ -27,21 +27,9 @@ GROUP = 64            # 1-D work-group multiple for the element-wise kernels
 RED_LOCAL = 64        # work-items per group in sumsq_partial (power of two)
 RED_GROUPS = 64       # groups per sumsq_partial launch (one slot = RED_GROUPS partial sums)
 
-_FILTER_CACHE: Dict[Tuple[int, int], Dict[str, cla.Array]] = {}
-_POOLS: Dict[int, object] = {}
-
-
-def _allocator(rt):
-    pool = _POOLS.get(id(rt))
-    if pool is None:
-        import pyopencl.tools as clt
-        pool = clt.MemoryPool(clt.ImmediateAllocator(rt.queue))
-        _POOLS[id(rt)] = pool
-    return pool
-
 
 def _empty(rt, shape) -> cla.Array:
-    return cla.empty(rt.queue, tuple(int(s) for s in shape), np.float32, allocator=_allocator(rt))
+    return cla.empty(rt.queue, tuple(int(s) for s in shape), np.float32, allocator=rt.pool())
 
 
 def _check(x: cla.Array, name: str) -> None:
@@ -59,17 +47,17 @@ def _dims(shape, axis: int) -> Tuple[int, int, int]:
 
 def _launch(rt, kernel, total: int, *args) -> None:
     """1-D range over total elements (element-wise kernels)."""
-    kernel(rt.queue, (round_up(max(int(total), 1), GROUP),), None, *args)
+    rt.launch(kernel, (round_up(max(int(total), 1), GROUP),), None, *args)
 
 
-CONV_RUN = 8          # consecutive elements per work-item of conv_axis / v_conv_axis (CONV_RUN there)
+CONV_RUN = 8          # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN there)
 
 
 def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1) -> None:
     """2-D range of the axis kernels: (ceil(n * inner / run) rounded up, outer); a work-item
     computes `run` consecutive elements of a line."""
     items = -(-max(int(n) * int(inner), 1) // run)
-    kernel(rt.queue, (round_up(items, GROUP), max(int(outer), 1)), None, *args)
+    rt.launch(kernel, (round_up(items, GROUP), max(int(outer), 1)), None, *args)
 
 
 def _resample_options(q: int) -> List[str]:
@@ -93,12 +81,8 @@ def _filter_array(rt, f) -> Tuple[cla.Array, int]:
 
 def device_filters(rt, q: int) -> Dict[str, cla.Array]:
     """h0, h1, g of design_filters(q) as float32 device arrays (cached per runtime and q)."""
-    key = (id(rt), int(q))
-    d = _FILTER_CACHE.get(key)
-    if d is None:
-        d = {k: cla.to_device(rt.queue, v.astype(np.float32)) for k, v in design_filters(q).items()}
-        _FILTER_CACHE[key] = d
-    return d
+    return rt.cached(("wavelet.filters", int(q)), lambda: {
+        k: cla.to_device(rt.queue, v.astype(np.float32)) for k, v in design_filters(q).items()})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -125,7 +109,7 @@ def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
     return out
 
 
-def v_conv_axis(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
+def conv_axis_bwd(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
                 accumulate: bool = False) -> cla.Array:
     """Adjoint of conv_axis; adds into out when accumulate."""
     _check(v_out, "v_out")
@@ -135,20 +119,10 @@ def v_conv_axis(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] = N
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, v_out.shape)
-    _launch_axis(rt, rt.kernel(KFILE, "v_conv_axis"), n, inner, outer, v_out.data, out.data, farr.data,
+    _launch_axis(rt, rt.kernel(KFILE, "conv_axis_bwd"), n, inner, outer, v_out.data, out.data, farr.data,
             np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)),
             run=CONV_RUN)
     return out
-
-
-def conv_rows(rt, img: cla.Array, f, out=None) -> cla.Array:
-    """Convolution along W of img [H, W, C] (the paper's *_r)."""
-    return conv_axis(rt, img, f, axis=1, out=out)
-
-
-def conv_cols(rt, img: cla.Array, f, out=None) -> cla.Array:
-    """Convolution along H of img [H, W, C] (the paper's *_c)."""
-    return conv_axis(rt, img, f, axis=0, out=out)
 
 
 def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] = None) -> cla.Array:
@@ -165,7 +139,7 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     return out
 
 
-def v_resample_axis(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
+def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
                     out: Optional[cla.Array] = None, accumulate: bool = False) -> cla.Array:
     """Adjoint of resample_axis (n_in: the input length along axis)."""
     _check(v_out, "v_out")
@@ -179,7 +153,7 @@ def v_resample_axis(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
-    _launch_axis(rt, rt.kernel(KFILE, "v_resample_axis", _resample_options(q)), n_in, inner, outer, v_out.data,
+    _launch_axis(rt, rt.kernel(KFILE, "resample_axis_bwd", _resample_options(q)), n_in, inner, outer, v_out.data,
                  out.data, np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
                  np.int32(bool(accumulate)))
     return out
@@ -228,7 +202,7 @@ def decompose(rt, img: cla.Array, q: int, levels: int = 2) -> List[Dict[str, cla
     return out
 
 
-def v_decompose_level(rt, v_bands: Dict[str, Sequence[cla.Array]], shape, q: int,
+def decompose_level_bwd(rt, v_bands: Dict[str, Sequence[cla.Array]], shape, q: int,
                       out: Optional[cla.Array] = None, accumulate: bool = False) -> cla.Array:
     """Adjoint of decompose_level.  v_bands maps each band to a list of cotangents [H', W', C]
     that are summed (so LL can take its own cotangent and the next level's adjoint)."""
@@ -241,13 +215,13 @@ def v_decompose_level(rt, v_bands: Dict[str, Sequence[cla.Array]], shape, q: int
         fr, fc = BAND_FILTERS[band]
         parts = [v for v in v_bands[band] if v is not None]
         for i, v in enumerate(parts):
-            v_resample_axis(rt, v, q, axis=0, n_in=H, out=tmp, accumulate=i > 0)
+            resample_axis_bwd(rt, v, q, axis=0, n_in=H, out=tmp, accumulate=i > 0)
         if not parts:
             continue
         acc = fr in v_rows
         if not acc:
             v_rows[fr] = _empty(rt, (H, W2, C))
-        v_conv_axis(rt, tmp, f[fc], axis=0, out=v_rows[fr], accumulate=acc)
+        conv_axis_bwd(rt, tmp, f[fc], axis=0, out=v_rows[fr], accumulate=acc)
     if out is None:
         if accumulate:
             raise ValueError("accumulate needs out")
@@ -259,13 +233,13 @@ def v_decompose_level(rt, v_bands: Dict[str, Sequence[cla.Array]], shape, q: int
             out.fill(0)
         return out
     for k, v in v_rows.items():
-        v_resample_axis(rt, v, q, axis=1, n_in=W, out=tmp_w)
-        v_conv_axis(rt, tmp_w, f[k], axis=1, out=out, accumulate=not first)
+        resample_axis_bwd(rt, v, q, axis=1, n_in=W, out=tmp_w)
+        conv_axis_bwd(rt, tmp_w, f[k], axis=1, out=out, accumulate=not first)
         first = False
     return out
 
 
-def v_decompose(rt, v_coeffs: List[Dict[str, cla.Array]], shape, q: int) -> cla.Array:
+def decompose_bwd(rt, v_coeffs: List[Dict[str, cla.Array]], shape, q: int) -> cla.Array:
     """Adjoint of decompose: cotangents of every band of every level -> v_img [H, W, C]."""
     shape = tuple(int(s) for s in shape)
     if len(shape) == 2:
@@ -278,7 +252,7 @@ def v_decompose(rt, v_coeffs: List[Dict[str, cla.Array]], shape, q: int) -> cla.
     for j in range(len(v_coeffs) - 1, -1, -1):
         vb = {b: [v_coeffs[j][b]] for b in BANDS}
         vb["LL"].append(v_next)
-        v_next = v_decompose_level(rt, vb, (shapes[j][0], shapes[j][1], C), q)
+        v_next = decompose_level_bwd(rt, vb, (shapes[j][0], shapes[j][1], C), q)
     return v_next
 
 
@@ -324,13 +298,13 @@ def loss_and_grad(rt, rendered: cla.Array, target: cla.Array, mask: Optional[cla
         for b, band in enumerate(BANDS):
             x = bands[band]
             slot = j * len(BANDS) + b
-            red(rt.queue, (RED_GROUPS * local,), (local,), x.data, np.int32(x.size), partial.data,
-                np.int32(slot), cl.LocalMemory(4 * local))
+            rt.launch(red, (RED_GROUPS * local,), (local,), x.data, np.int32(x.size), partial.data,
+                      np.int32(slot), cl.LocalMemory(4 * local))
             sizes.append(x.size)
             # cotangent of the band, in place: 2 lambda / n * coefficient
             _launch(rt, scl, x.size, x.data, x.data, np.float32(2.0 * lam[b] / x.size),
                     np.int32(x.size), np.int32(1), np.int32(0))
-    v = v_decompose(rt, coeffs, (H, W, C), q)
+    v = decompose_bwd(rt, coeffs, (H, W, C), q)
     if mask is not None:
         _launch(rt, scl, v.size, v.data, mask.data, np.float32(1.0), np.int32(npix), np.int32(C),
                 np.int32(1))

@@ -2,7 +2,7 @@
 
 The trainer computes the same functions, and their gradient images for rasterize_bwd, with the
 OpenCL kernels of endowave_cl/train/device_losses.py (cl/image_loss.cl); tests/test_device_losses.py
-checks them against ``image_losses`` here and its torch autograd gradient.
+checks them against ``image_losses_ref`` here and its torch autograd gradient.
 
 Images are channel-last float tensors: image [H, W, 3], depth [H, W], flow [H, W, 2];
 mask [H, W] with 1 = supervise (tissue), 0 = ignore (tool).  Every "masked mean" divides by the
@@ -23,9 +23,8 @@ Choices (DESIGN.md leaves them open):
   it, does not grow with the image size.  Beyond an error of ``delta`` pixels (config
   ``flow_huber_delta``, default 4) it continues linearly (Huber: 2 delta |e| - delta^2, same value
   and slope at delta), so one pixel's gradient is at most 2 delta.  Without that bound, Gaussians
-  whose velocity Sigma_xt / Sigma_tt runs away render flows of 1e3-1e6 px once densification has
-  made many small ones, and the squared term took over training on the real EndoNeRF frames
-  (pulling, 320x256, 1500 steps, 300k Gaussians: flow loss 1e8, test PSNR 22.6 instead of 28-30).
+  whose velocity Sigma_xt / Sigma_tt runs away render flows far beyond the image, and the squared
+  term takes over training (the measurement is in the README).
 """
 from __future__ import annotations
 
@@ -35,13 +34,11 @@ from typing import Callable, Dict, Mapping, Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-SSIM_WINDOW = 11       # 3DGS: 11 x 11 Gaussian window ...
-SSIM_SIGMA = 1.5       # ... of standard deviation 1.5 pixels
-SSIM_C1 = 0.01 ** 2    # (K1 L)^2 with K1 = 0.01, data range L = 1
-SSIM_C2 = 0.03 ** 2    # (K2 L)^2 with K2 = 0.03
+from ..loss_constants import FLOW_HUBER_DELTA, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401
 
 
 def _gaussian_window_1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    # loss_constants.gaussian_window_1d in torch, computed in the images' dtype
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
     g = torch.exp(-x * x / (2 * sigma * sigma))
     return g / g.sum()  # [size]; the 2D window is its outer product
@@ -116,9 +113,6 @@ def depth_loss(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask: Optional[
     return _masked_mean((pred_depth - gt_depth).abs(), valid)
 
 
-FLOW_HUBER_DELTA = 4.0   # pixels: the flow error beyond which the flow loss grows linearly
-
-
 def flow_loss(pred_flow: torch.Tensor, gt_flow: torch.Tensor, valid: Optional[torch.Tensor] = None,
               delta: float = FLOW_HUBER_DELTA) -> torch.Tensor:
     """Mean over valid pixels of the squared endpoint error |e|^2 [pixels^2], continued linearly
@@ -140,7 +134,7 @@ def _f(x: torch.Tensor) -> float:
 WaveletLoss = Callable[[torch.Tensor, torch.Tensor, Optional[torch.Tensor]], torch.Tensor]
 
 
-def image_losses(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional[torch.Tensor]], cfg,
+def image_losses_ref(pred: Mapping[str, torch.Tensor], target: Mapping[str, Optional[torch.Tensor]], cfg,
                  wavelet_loss: Optional[WaveletLoss] = None) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The total training loss of one frame and its parts (floats, for logging).
 
