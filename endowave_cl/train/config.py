@@ -81,10 +81,10 @@ class TrainConfig:
     lambda_dssim: float = 0.2           # L_rgb = (1 - 0.2) L1 + 0.2 D-SSIM
     lambda_depth: float = 1.0
     lambda_flow: float = 0.01           # not in the paper: flow loss is a mean squared endpoint
-                                        # error in pixels (see train/losses.py); 1 px of error
+                                        # error in pixels (see reference/losses.py); 1 px of error
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
     flow_huber_delta: float = 4.0       # px: beyond this endpoint error the flow loss grows linearly
-                                        # (bounded gradient; see train/losses.py); inf: pure squared
+                                        # (bounded gradient; see reference/losses.py); inf: pure squared
     lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
                                         # error per sub-band coefficient (MSE scale), weight 1
     use_depth: bool = True

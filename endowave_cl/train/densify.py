@@ -128,7 +128,8 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     max_scale[sane] = spatial_size(cov[sane])                                  # [N]
 
     candidate = (mean_grad >= cfg.densify_grad_threshold) & sane
-    budget = max(0, int(cfg.max_gaussians) - N)
+    # max_gaussians 0 (not resolved per pixel, as the trainer does): no cap
+    budget = max(0, int(cfg.max_gaussians) - N) if cfg.max_gaussians > 0 else 2 ** 62
     children = int(cfg.split_children)
     small = max_scale <= cfg.percent_dense * extent
     cost = np.where(small, 1, children - 1)  # rows added: a clone adds 1, a split children - 1

@@ -152,7 +152,7 @@ class Trainer:
 
     @property
     def wavelet_config(self):
-        from ..wavelet.loss import WaveletConfig
+        from ..wavelet.config import WaveletConfig
         if not hasattr(self, "_wcfg"):
             self._wcfg = WaveletConfig()
         return self._wcfg
