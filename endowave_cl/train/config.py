@@ -24,7 +24,7 @@ MAX_GAUSSIANS_PER_PIXEL = 2.0
 @dataclass
 class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
-    iterations: int = 6000          # about 15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
+    iterations: int = 3000          # about 15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
                                     # 4DGS trains 30000 on a GPU.  --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
                                     # training on this device (train/budget.py); 0: `iterations`
@@ -65,8 +65,7 @@ class TrainConfig:
     # -- adaptive density control (3DGS) ------------------------------------------------------------
     densify_from: int = 500
     densify_every: int = 100
-    densify_until: int = 2500           # 3DGS stops at half of training (15000 of 30000); here the
-                                        # last ~60% of the steps refine a fixed set
+    densify_until: int = 1500           # half of training, as 3DGS (15000 of 30000)
     densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
