@@ -109,7 +109,8 @@ def test_short_training_on_pure_translation_carries_the_motion(rt, tmp_path):
     from endowave_cl.train.trainer import Trainer
     shift = np.array(_translation_scene(tmp_path / "scene"))
     scene = load_scene(tmp_path / "scene")
-    cfg = TrainConfig(iterations=200, init_points=4000, densify_from=50, densify_every=25, densify_until=150,
+    cfg = TrainConfig(iterations=200, init_points=4000, max_gaussians=16000, densify_from=50, densify_every=25,
+                      densify_until=150,
                       eval_every=0, checkpoint_every=0, log_every=50, seed=0)
     tr = Trainer(scene, cfg, tmp_path / "run", rt, log=lambda s: None)
     tr.train(progress=False)
