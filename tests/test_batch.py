@@ -174,15 +174,18 @@ def _manifest(base: Path, root: str):
 class Killer(threading.Thread):
     """SIGKILLs the process training ``run_dir`` (the pid in RUN/.lock) once a checkpoint exists."""
 
-    def __init__(self, run_dir: Path, timeout: float = 240.0):
+    def __init__(self, run_dir: Path, timeout: float = 1800.0):
+        # a long limit: on a loaded machine s1's training can start minutes into the batch; the
+        # batch's end stops the thread (``done``)
         super().__init__(daemon=True)
         self.run_dir, self.timeout = run_dir, timeout
         self.pid = None
         self.step = None
+        self.done = threading.Event()
 
     def run(self):
         end = time.monotonic() + self.timeout
-        while time.monotonic() < end and self.pid is None:
+        while time.monotonic() < end and self.pid is None and not self.done.is_set():
             cks = T.read_json(self.run_dir / "train_log.json") if list(self.run_dir.glob("checkpoint_*.npz")) else None
             lock = self.run_dir / ".lock"
             if cks is not None and lock.exists():
@@ -202,6 +205,7 @@ def _run(m, executor):
     killer.start()
     out = io.StringIO()
     res = run_batch(m, executor, out=out, interval=1.0)
+    killer.done.set()
     killer.join(timeout=1)
     return res, killer, out.getvalue()
 
