@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from ..errors import EndowaveError
+from ..train.config import read_toml
 
 STAGES = ("flow", "train", "eval", "render", "export")   # also the order a scene goes through them
 DEFAULT_STAGES = ("flow", "train", "eval")
@@ -65,11 +66,6 @@ class Manifest:
     render: Dict[str, Any]
     export: Dict[str, Any]
     settings: Dict[str, Any] = field(default_factory=dict)
-
-
-def _toml():
-    from ..train.config import _toml_module
-    return _toml_module()
 
 
 def _type_name(types: tuple) -> str:
@@ -175,18 +171,7 @@ def _settings(src: str, where: str, raw) -> Dict[str, Any]:
 def load_manifest(path) -> Manifest:
     path = Path(path)
     src = str(path)
-    toml = _toml()
-    try:
-        with open(path, "rb") as f:
-            data = toml.load(f)
-    except FileNotFoundError:
-        raise EndowaveError(f"{src}: manifest file does not exist") from None
-    except IsADirectoryError:
-        raise EndowaveError(f"{src}: is a folder, not a TOML manifest") from None
-    except OSError as e:
-        raise EndowaveError(f"{src}: cannot read the manifest ({e.strerror or e})") from None
-    except (toml.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise EndowaveError(f"{src}: not valid TOML: {e}") from None
+    data = read_toml(path, "manifest file")
     for k in data:
         if k not in TOP_KEYS:
             raise EndowaveError(f"{src}: unknown key '{k}' (expected any of {', '.join(TOP_KEYS)})")

@@ -218,22 +218,28 @@ def _toml_module():
     return tomli
 
 
+def read_toml(path, what: str) -> Dict[str, Any]:
+    """The TOML file at ``path`` as a dict; one-line EndowaveError naming the file otherwise.
+    ``what`` names the kind of file in the messages ("config file", "manifest")."""
+    toml = _toml_module()
+    try:
+        with open(path, "rb") as f:
+            return toml.load(f)
+    except FileNotFoundError:
+        raise EndowaveError(f"{path}: {what} does not exist") from None
+    except IsADirectoryError:
+        raise EndowaveError(f"{path}: is a folder, not a TOML {what}") from None
+    except OSError as e:
+        raise EndowaveError(f"{path}: cannot read the {what} ({e.strerror or e})") from None
+    except (toml.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise EndowaveError(f"{path}: not valid TOML: {e}") from None
+
+
 def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = None) -> TrainConfig:
     """Defaults, then the TOML file at ``path`` (if any), then ``overrides`` (values or strings)."""
     cfg = TrainConfig()
     if path is not None:
-        toml = _toml_module()
-        try:
-            with open(path, "rb") as f:
-                data = toml.load(f)
-        except FileNotFoundError:
-            raise EndowaveError(f"{path}: config file does not exist") from None
-        except IsADirectoryError:
-            raise EndowaveError(f"{path}: is a folder, not a TOML config file") from None
-        except OSError as e:
-            raise EndowaveError(f"{path}: cannot read the config file ({e.strerror or e})") from None
-        except (toml.TOMLDecodeError, UnicodeDecodeError) as e:
-            raise EndowaveError(f"{path}: not valid TOML: {e}") from None
+        data = read_toml(path, "config file")
         if "train" in data and isinstance(data["train"], dict):
             rest = {k: v for k, v in data.items() if k != "train"}
             data = {**data["train"], **rest}
