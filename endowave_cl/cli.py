@@ -20,7 +20,7 @@ COMMANDS = {
     "flow": "precompute pseudo ground-truth optical flow for a scene",
     "train": "train an EndoWave model on a scene",
     "render": "render a trained run's test frames, a video and depth images",
-    "eval": "evaluate a trained run (PSNR, SSIM, LPIPS, FPS)",
+    "eval": "evaluate a trained run (PSNR, SSIM, LPIPS, FPS) beside interpolation baselines",
     "export": "export a trained model at time t as a 3DGS PLY",
     "batch": "run a manifest of scenes (flow/train/eval/render/export) locally or on a Ray cluster",
     "view": "look at a trained run in a web browser: scrub time, orbit (needs the [viewer] extra)",
