@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_open
-from .gaussians import MARGINAL_CULL, TEASH_PERIOD, Gaussians
-from .train.densify import covariance_4d
+from .gaussians import MARGINAL_CULL, TEASH_PERIOD, Gaussians, covariance_4d
 
 PLY_SH_REST = 15        # 3DGS PLY files carry degree-3 SH: 15 non-DC coefficients per channel
 MIN_STD = 1e-12         # eigenvalues are clamped so that log(std) stays finite

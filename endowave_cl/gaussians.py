@@ -15,6 +15,10 @@ omega_n = 2 pi n / TEASH_PERIOD with TEASH_PERIOD = 2 (twice the normalised sequ
 so the first harmonic is not forced to repeat between the first and the last frame);
 colour = max(0, 0.5 + sum_{n,k} c[n,k] Y_k(d) cos(omega_n t + phi_n)), d the unit direction from
 the camera centre to the conditional mean at t.  phi_0 is unused: cos(0 * t + phi_0) is taken as 1.
+
+The model layer (numpy, torch-free): the 4D rotation and covariance of every Gaussian in the
+convention of reference/project.py (R = M_left(q_l) M_right(q_r)), used by density control,
+export and the viewer; checkpoint files are read and written by endowave_cl/checkpoint.py.
 """
 from __future__ import annotations
 
@@ -27,6 +31,15 @@ SH_DEGREE = 3          # L: spherical-harmonic degree (K = 16 bases)
 TEMPORAL_FREQS = 2     # NT: temporal frequencies n = 1..NT besides the constant n = 0
 TEASH_PERIOD = 2.0     # T in omega_n = 2 pi n / T, in normalised time units
 MARGINAL_CULL = 0.05   # a Gaussian whose marginal temporal weight is below this is skipped
+
+# Real spherical harmonics (3DGS constants and sign convention), degree 0..3; the kernels
+# (cl/project4d_common.h) hold the same values.
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+         -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 PARAM_NAMES = ("means", "scales", "quat_l", "quat_r", "opacity", "sh", "phase")
 
@@ -84,6 +97,42 @@ class Gaussians:
         sh[:, 0, 0, :] = rng.uniform(-1, 1, (n, 3))
         return cls(means, scales, rng.standard_normal((n, 4)), rng.standard_normal((n, 4)),
                    rng.uniform(-2, 3, n), sh, rng.uniform(-np.pi, np.pi, (n, nt + 1)))
+
+
+def quat_left(q: np.ndarray) -> np.ndarray:
+    """[..., 4] (w, x, y, z) -> [..., 4, 4] matrix of v -> q * v (reference/project.py quat_left_matrix)."""
+    a, b, c, d = np.moveaxis(q, -1, 0)
+    return np.stack([np.stack([a, -b, -c, -d], -1), np.stack([b, a, -d, c], -1),
+                     np.stack([c, d, a, -b], -1), np.stack([d, -c, b, a], -1)], -2)
+
+
+def quat_right(q: np.ndarray) -> np.ndarray:
+    """[..., 4] (w, x, y, z) -> [..., 4, 4] matrix of v -> v * q (reference/project.py quat_right_matrix)."""
+    p, q1, r, s = np.moveaxis(q, -1, 0)
+    return np.stack([np.stack([p, -q1, -r, -s], -1), np.stack([q1, p, s, -r], -1),
+                     np.stack([r, -s, p, q1], -1), np.stack([s, r, -q1, p], -1)], -2)
+
+
+def normalize_quat(q: np.ndarray) -> np.ndarray:
+    """[N, 4] -> [N, 4] unit quaternions; the squared norm is clamped at 1e-24 (as
+    reference/project.py normalize_quat) so that a zero quaternion gives 0, not NaN."""
+    q = np.asarray(q, np.float64)
+    return q / np.sqrt(np.maximum((q * q).sum(-1, keepdims=True), 1e-24))
+
+
+def rotation_4d(g: Gaussians) -> np.ndarray:
+    """[N, 4, 4] float64 rotations R = M_left(q_l) M_right(q_r) of the (unnormalised) quaternions.
+
+    The numpy twin of reference/project.py rotation4d (torch): the same formulas in float64; the
+    two may differ in the last bit (~1e-16) where the sums run in another order.
+    """
+    return quat_left(normalize_quat(g.quat_l)) @ quat_right(normalize_quat(g.quat_r))
+
+
+def covariance_4d(g: Gaussians) -> np.ndarray:
+    """[N, 4, 4] float64 Sigma = R S S^T R^T of every Gaussian (S = diag(exp(scales)))."""
+    M = rotation_4d(g) * np.exp(g.scales.astype(np.float64))[:, None, :]  # R diag(S), [N, 4, 4]
+    return M @ np.swapaxes(M, -1, -2)
 
 
 def upload(rt, g: Gaussians) -> Dict[str, "object"]:

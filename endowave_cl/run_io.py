@@ -23,7 +23,7 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     from .data.scene import load_scene
     import sys
     from .train.config import TrainConfig
-    from .train.run_folder import load_newest_good_checkpoint
+    from .checkpoint import load_newest_good_checkpoint
     run = Path(run_dir)
     cfg_file = run / "config.json"
     if not cfg_file.is_file():

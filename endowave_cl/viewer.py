@@ -185,7 +185,7 @@ def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, he
 def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
     """reference/project.py's sh_basis in numpy (same constants, order and signs): unit directions
     [N, 3] -> [N, (degree+1)^2].  The torch one is several times slower for one call on a CPU."""
-    from .reference.project import SH_C0, SH_C1, SH_C2, SH_C3
+    from .gaussians import SH_C0, SH_C1, SH_C2, SH_C3
     x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
     out = [np.full_like(x, SH_C0)]
     if degree >= 1:
@@ -322,7 +322,7 @@ class ViewerModel:
         spatial covariance Sxx - sxt sxt^T / stt, the velocity sxt / stt and stt (export_ply.py's
         gaussians_at evaluates the same formulas, and the eigen-decomposition a PLY needs, per call)."""
         if getattr(self, "_motion_cache", None) is None:
-            from .train.densify import covariance_4d
+            from .gaussians import covariance_4d
             sigma = covariance_4d(self.gaussians)                       # [N, 4, 4] float64
             stt = sigma[:, 3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):

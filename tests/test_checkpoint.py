@@ -63,7 +63,7 @@ def test_config_dict_round_trip():
 import numpy as np  # noqa: E402
 
 from endowave_cl.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
-from endowave_cl.train.checkpoint import (checkpoint_path, latest_checkpoint, load_checkpoint,  # noqa: E402
+from endowave_cl.checkpoint import (checkpoint_path, latest_checkpoint, load_checkpoint,  # noqa: E402
                                           save_checkpoint)
 
 

@@ -6,10 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from endowave_cl.gaussians import Gaussians
+from endowave_cl.gaussians import Gaussians, covariance_4d
 from endowave_cl.train.config import TrainConfig
-from endowave_cl.train.densify import (covariance_4d, densify_and_prune, logit, moment_source_index,
-                                       reset_opacity, sigmoid)
+from endowave_cl.train.densify import densify_and_prune, logit, moment_source_index, reset_opacity, sigmoid
 from endowave_cl.train.motion import motion_of
 
 CFG = TrainConfig()

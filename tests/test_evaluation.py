@@ -120,7 +120,7 @@ def test_gt_flow_of_a_downscaled_scene_and_bad_files(scene_dir, tmp_path):
 def _run_folder(path, scene_dir, g):
     """A run folder as `endowave-cl train` leaves it: config.json and a checkpoint."""
     from endowave_cl.atomic import write_bytes_atomic
-    from endowave_cl.train.checkpoint import checkpoint_path, save_checkpoint
+    from endowave_cl.checkpoint import checkpoint_path, save_checkpoint
     from endowave_cl.train.config import TrainConfig
     cfg = TrainConfig().to_dict()
     path.mkdir()

@@ -48,7 +48,7 @@ def _trainer(scene_path, run, rt, resume=True, msgs=None, **kw):
 
 
 def _steps(run):
-    from endowave_cl.train.run_folder import checkpoints_by_step
+    from endowave_cl.checkpoint import checkpoints_by_step
     return [int(p.name[11:18]) for p in checkpoints_by_step(run)]
 
 
@@ -256,7 +256,7 @@ def test_sigterm_saves_and_says_so_in_one_line(tiny_scene, tmp_path):
     ("lr_features", "1e3", "PSNR collapsed"),
 ])
 def test_divergence_stops_the_run_and_keeps_the_good_checkpoint(rt, tiny_scene, tmp_path, key, value, what):
-    from endowave_cl.train.checkpoint import load_checkpoint
+    from endowave_cl.checkpoint import load_checkpoint
     run = tmp_path / "run"
     r = _cli("train", str(tiny_scene), "--out", str(run), "--iterations", "10", "--quiet", "--no-flow",
              "--set", "init_points=500", "--set", "checkpoint_every=5")

@@ -92,7 +92,7 @@ def main(argv=None):
         print(f"== {name}: {scene.summary()}", flush=True)
         if args.evaluate_only:
             from endowave_cl.gaussians import upload
-            from endowave_cl.train.checkpoint import latest_checkpoint, load_checkpoint
+            from endowave_cl.checkpoint import latest_checkpoint, load_checkpoint
             ck = latest_checkpoint(out / name)
             params = upload(rt, load_checkpoint(ck)["gaussians"])
             old = [r for r in _previous_rows(out) if r["variant"] == name]

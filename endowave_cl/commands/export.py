@@ -14,7 +14,7 @@ def run(args) -> int:
 
     from ..errors import EndowaveError
     from ..export_ply import export_ply
-    from ..train.run_folder import load_newest_good_checkpoint
+    from ..checkpoint import load_newest_good_checkpoint
     if not 0.0 <= args.time <= 1.0:
         raise EndowaveError(f"--time must be in [0, 1], got {args.time}")
     run = Path(args.run)

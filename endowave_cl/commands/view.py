@@ -59,7 +59,7 @@ def run(args) -> int:
     if not run_dir.is_dir():
         raise EndowaveError(f"{run_dir}: run folder not found")
     # the run's own problems first, before what the viewer needs installed
-    from ..train.run_folder import checkpoints_by_step
+    from ..checkpoint import checkpoints_by_step
     if not (run_dir / "config.json").is_file():
         raise EndowaveError(f"{run_dir}: not a training run (no config.json); train one with endowave-cl train")
     if not checkpoints_by_step(run_dir):

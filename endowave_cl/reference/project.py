@@ -24,20 +24,12 @@ from typing import Dict, Optional
 
 import torch
 
-from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
+from ..gaussians import MARGINAL_CULL, SH_C0, SH_C1, SH_C2, SH_C3, TEASH_PERIOD  # noqa: F401  (SH_C*: read from here too)
 from ..layout import TILE, tile_grid
 
 LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
 SIGMA_TT_MIN = 1e-12   # temporal variance below this (std 1e-6 of the sequence) is degenerate: culled
 RADIUS_MAX = 1 << 30   # the stored int radius saturates here (the rect uses the float radius)
-
-# Real spherical harmonics (3DGS constants and sign convention), degree 0..3.
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-         -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
 def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:

@@ -46,7 +46,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from ..gaussians import PARAM_NAMES, Gaussians
+from ..gaussians import PARAM_NAMES, Gaussians, covariance_4d
 from .motion import gaussian_from_covariance, motion_of, moving_covariance, spatial_size
 
 
@@ -56,20 +56,6 @@ def sigmoid(x: np.ndarray) -> np.ndarray:
 
 def logit(p: float) -> float:
     return float(math.log(p / (1.0 - p)))
-
-
-def rotation_4d(g: Gaussians) -> np.ndarray:
-    """[N, 4, 4] float64 rotations R = M_left(q_l) M_right(q_r) (convention of reference/project.py)."""
-    import torch
-    from ..reference.project import rotation4d
-    return rotation4d(torch.from_numpy(g.quat_l.astype(np.float64)),
-                      torch.from_numpy(g.quat_r.astype(np.float64))).numpy()
-
-
-def covariance_4d(g: Gaussians) -> np.ndarray:
-    """[N, 4, 4] float64 Sigma = R S S^T R^T of every Gaussian."""
-    M = rotation_4d(g) * np.exp(g.scales.astype(np.float64))[:, None, :]  # R diag(S)
-    return M @ np.swapaxes(M, -1, -2)
 
 
 def share_opacity(logit_opacity: np.ndarray, k: int) -> np.ndarray:

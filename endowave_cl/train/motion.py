@@ -23,25 +23,13 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from ..gaussians import quat_left as _quat_left, quat_right as _quat_right
+
 # Flow is trusted where its forward-backward check passed; elsewhere the velocity is filled in
 # from valid neighbours by normalised convolution with a Gaussian of this std (fraction of the
 # image diagonal); where too little valid flow is near, the velocity is 0.
 FILL_SIGMA = 0.03
 FILL_MIN_WEIGHT = 0.05
-
-
-def _quat_left(q: np.ndarray) -> np.ndarray:
-    """[..., 4] (w, x, y, z) -> [..., 4, 4] matrix of v -> q * v (reference/project.py)."""
-    a, b, c, d = np.moveaxis(q, -1, 0)
-    return np.stack([np.stack([a, -b, -c, -d], -1), np.stack([b, a, -d, c], -1),
-                     np.stack([c, d, a, -b], -1), np.stack([d, -c, b, a], -1)], -2)
-
-
-def _quat_right(q: np.ndarray) -> np.ndarray:
-    """[..., 4] (w, x, y, z) -> [..., 4, 4] matrix of v -> v * q (reference/project.py)."""
-    p, q1, r, s = np.moveaxis(q, -1, 0)
-    return np.stack([np.stack([p, -q1, -r, -s], -1), np.stack([q1, p, s, -r], -1),
-                     np.stack([r, -s, p, q1], -1), np.stack([s, r, -q1, p], -1)], -2)
 
 
 # The 16 products M_left(e_k) M_right(e_l) of basis quaternions are signed permutation matrices,

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..atomic import TEMP_RE, pid_alive, stale_temporaries
 from ..errors import EndowaveError
-from .checkpoint import CHECKPOINT_RE, load_checkpoint
+from ..checkpoint import checkpoints_by_step, load_newest_good_checkpoint
 
 LOCK_NAME = ".lock"
 PREVIOUS_RUN = "previous_run"
@@ -154,39 +154,6 @@ def clean_stale_temporaries(run_dir, log: Callable[[str], None] = print) -> List
     if removed:
         log(f"removed {len(removed)} temporary file(s) left by interrupted writers in {run_dir}")
     return removed
-
-
-def checkpoints_by_step(run_dir) -> List[Path]:
-    """checkpoint_<step>.npz files of run_dir, lowest step first."""
-    d = Path(run_dir)
-    if not d.is_dir():
-        return []
-    found = [(int(m.group(1)), p) for p in d.iterdir()
-             if (m := CHECKPOINT_RE.match(p.name)) and p.is_file()]
-    return [p for _, p in sorted(found)]
-
-
-def load_newest_good_checkpoint(run_dir, log: Callable[[str], None] = print, set_aside: bool = False):
-    """(path, checkpoint dict) of the newest checkpoint that reads back, or (None, None) when there
-    is none.  An unreadable newer one is reported (and renamed to *.corrupt with ``set_aside``, so
-    retention and later resumes never count it); when none reads back, its error is raised."""
-    cks = checkpoints_by_step(run_dir)
-    first_error = None
-    for p in reversed(cks):
-        try:
-            return p, load_checkpoint(p)
-        except EndowaveError as e:
-            first_error = first_error or e
-            older = "an older one" if p != cks[0] else "no older one"
-            if set_aside:
-                with contextlib.suppress(OSError):
-                    os.replace(p, p.with_name(p.name + ".corrupt"))
-                log(f"warning: {e}; set aside as {p.name}.corrupt, trying {older}")
-            else:
-                log(f"warning: {e}; trying {older}")
-    if first_error is not None:
-        raise first_error
-    return None, None
 
 
 def prune_checkpoints(run_dir, keep: Iterable[Path], newest: int = 2) -> List[Path]:
@@ -437,7 +404,7 @@ class RunSession:
 
     def save(self, trainer) -> Path:
         from ..gaussians import download
-        from .checkpoint import checkpoint_path, save_checkpoint
+        from ..checkpoint import checkpoint_path, save_checkpoint
         try:
             self.guard.check(trainer.step, trainer.params, trainer.rt)
         except EndowaveError as e:

@@ -1,4 +1,6 @@
-"""Training checkpoints: one .npz per save, written atomically, validated on load.
+"""Checkpoint files (the model layer's I/O, torch-free): one .npz per save, written atomically,
+validated on load; and finding a run folder's checkpoints.  Training (train/run_folder.py),
+export, evaluation and the viewer read them from here.
 
 Layout of the .npz (no pickled objects; np.load runs with allow_pickle=False):
     format                      int, CHECKPOINT_FORMAT
@@ -13,17 +15,19 @@ Files are named checkpoint_<step:07d>.npz in the run folder (``checkpoint_path``
 """
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import zipfile
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional
+from typing import Any, Callable, Dict, List, Mapping, Optional
 
 import numpy as np
 
-from ..atomic import atomic_open
-from ..errors import EndowaveError
-from ..gaussians import PARAM_NAMES, Gaussians
+from .atomic import atomic_open
+from .errors import EndowaveError
+from .gaussians import PARAM_NAMES, Gaussians
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_RE = re.compile(r"^checkpoint_(\d+)\.npz$")
@@ -141,3 +145,36 @@ def load_checkpoint(path) -> Dict[str, Any]:
             extra[k[len("extra/"):]] = v
     return {"gaussians": Gaussians(**params), "adam_state": adam_state, "step": int(need("step")),
             "config": config, "extra": extra}
+
+
+def checkpoints_by_step(run_dir) -> List[Path]:
+    """checkpoint_<step>.npz files of run_dir, lowest step first."""
+    d = Path(run_dir)
+    if not d.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in d.iterdir()
+             if (m := CHECKPOINT_RE.match(p.name)) and p.is_file()]
+    return [p for _, p in sorted(found)]
+
+
+def load_newest_good_checkpoint(run_dir, log: Callable[[str], None] = print, set_aside: bool = False):
+    """(path, checkpoint dict) of the newest checkpoint that reads back, or (None, None) when there
+    is none.  An unreadable newer one is reported (and renamed to *.corrupt with ``set_aside``, so
+    retention and later resumes never count it); when none reads back, its error is raised."""
+    cks = checkpoints_by_step(run_dir)
+    first_error = None
+    for p in reversed(cks):
+        try:
+            return p, load_checkpoint(p)
+        except EndowaveError as e:
+            first_error = first_error or e
+            older = "an older one" if p != cks[0] else "no older one"
+            if set_aside:
+                with contextlib.suppress(OSError):
+                    os.replace(p, p.with_name(p.name + ".corrupt"))
+                log(f"warning: {e}; set aside as {p.name}.corrupt, trying {older}")
+            else:
+                log(f"warning: {e}; trying {older}")
+    if first_error is not None:
+        raise first_error
+    return None, None
