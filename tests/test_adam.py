@@ -214,3 +214,25 @@ def test_adam_frozen_group_without_gradient_and_empty_scene_oclgrind(rt):
     opt0 = DeviceAdam(rt, upload(rt, e), LRS)
     opt0.step({n: _to_dev(rt, a) for n, a in e.as_dict().items()})
     assert opt0.state_dict()["step"] == 1
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("n", [small(1000, 70), 1, 0])
+def test_opacity_reset_matches_reference(rt, n):
+    """cl/opacity_reset.cl caps the opacity logits in place at logit(0.01), as opacity_reset_ref."""
+    import pyopencl.array as cla
+    from endowave_cl.ops.adam import opacity_reset
+    from endowave_cl.reference.adam import opacity_reset_ref
+    cap = math.log(0.01 / 0.99)
+    x = np.random.default_rng(n).uniform(-8, 8, n).astype(np.float32)
+    if n > 3:
+        x[:3] = [np.float32(cap), np.nan, -np.inf]     # at the cap, NaN (stays NaN), -inf (kept)
+    dev = cla.to_device(rt.queue, x)
+    opacity_reset(rt, dev, cap)
+    want = opacity_reset_ref(x, cap)
+    np.testing.assert_array_equal(dev.get(), want)
+    assert (want[~np.isnan(x)] <= np.float32(cap)).all()         # every value but the NaN capped
+    if n > 3:
+        assert np.isnan(want[1]) and want[2] == -np.inf
+        assert (x[3:] > cap).any() and (want[3:] <= np.float32(cap)).all()
+        np.testing.assert_array_equal(want[3:][x[3:] <= cap], x[3:][x[3:] <= cap])   # below: untouched

@@ -1,4 +1,4 @@
-"""Adaptive density control (train/densify.py): clone, 4D split, prune, opacity reset."""
+"""Adaptive density control (train/densify.py): clone, 4D split, prune."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import pytest
 
 from endowave_cl.gaussians import Gaussians, covariance_4d
 from endowave_cl.train.config import TrainConfig
-from endowave_cl.train.densify import densify_and_prune, logit, moment_source_index, reset_opacity, sigmoid
+from endowave_cl.train.densify import densify_and_prune, logit, moment_source_index, sigmoid
 from endowave_cl.train.motion import motion_of
 
 CFG = TrainConfig()
@@ -130,15 +130,6 @@ def test_densified_copies_share_the_opacity():
     o = sigmoid(out.opacity)
     np.testing.assert_allclose(1 - (1 - o[0]) * (1 - o[1]), 0.6, rtol=1e-5)   # original + clone
     np.testing.assert_allclose(1 - (1 - o[2]) * (1 - o[3]), 0.6, rtol=1e-5)   # two children
-
-
-def test_reset_opacity_caps_at_value():
-    g = _scene(3)
-    g.opacity[:] = [logit(0.5), logit(0.001), logit(0.01)]
-    r = reset_opacity(g, 0.01)
-    np.testing.assert_allclose(sigmoid(r.opacity), [0.01, 0.001, 0.01], rtol=1e-5)
-    np.testing.assert_array_equal(r.means, g.means)
-    assert sigmoid(g.opacity[0]) == pytest.approx(0.5)  # the input is not modified
 
 
 def test_densify_then_adam_remap_zeroes_new_rows(rt):

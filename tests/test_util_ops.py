@@ -16,3 +16,27 @@ def test_any_nonfinite(rt, bad):
         c[128] = bad        # the last element, in a partly filled work-group
     arrs = [cla.to_device(rt.queue, x) for x in (a, b, c)]
     assert any_nonfinite(rt, arrs) == (bad is not None)
+
+
+@pytest.mark.oclgrind
+def test_read_back_several_arrays_in_one_read(rt):
+    """read_back returns every array as it is on the device: dtypes, shapes, odd byte sizes, an
+    offset view, an empty array, and the NaN flag enqueued without a read."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import nonfinite_flag, read_back
+    rng = np.random.default_rng(1)
+    host = {"f": rng.standard_normal((7, 5)).astype(np.float32), "i": np.arange(3, dtype=np.int32),
+            "u": np.arange(5, dtype=np.uint8), "e": np.zeros((0, 2), np.float32)}
+    dev = {k: cla.to_device(rt.queue, v) for k, v in host.items()}
+    base = cla.to_device(rt.queue, np.arange(10, dtype=np.float32))
+    dev["view"] = base[4:]
+    bad = cla.to_device(rt.queue, np.array([1.0, np.nan], np.float32))
+    dev["flag"] = nonfinite_flag(rt, [dev["f"], bad])
+    got = read_back(rt, dev)
+    for k, v in host.items():
+        assert got[k].dtype == v.dtype and got[k].shape == v.shape
+        np.testing.assert_array_equal(got[k], v)
+    np.testing.assert_array_equal(got["view"], np.arange(4, 10, dtype=np.float32))
+    assert got["flag"].tolist() == [1]
+    assert read_back(rt, {"e": dev["e"]})["e"].shape == (0, 2)

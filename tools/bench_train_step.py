@@ -3,7 +3,9 @@
 
 Uses the shared real EndoNeRF frames when present (../shared/data/endonerf/pulling_soft_tissues),
 else a synthetic scene of the same size. Prints the median over --runs steps after --warmup steps,
-with the per-part split, the device and the sizes.
+with the per-part split (each part followed by a queue finish), the device and the sizes; then
+the median of as many Trainer.train_step calls (the step as training runs it: no finish between
+the parts, its own read-backs and the NaN guard).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--no-flow] [--no-wavelet]
 """
@@ -82,6 +84,15 @@ def main(argv=None):
         for key, ts in parts.items():
             print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
         print(f"seconds per training step: {statistics.median(parts['step']):.3f}")
+        steps = []
+        for i in range(args.warmup + args.runs):
+            rt.queue.finish()
+            t0 = time.perf_counter()
+            tr.train_step(order[i % len(order)])
+            rt.queue.finish()
+            if i >= args.warmup:
+                steps.append(time.perf_counter() - t0)
+        print(f"seconds per Trainer.train_step: {statistics.median(steps):.3f}")
 
 
 if __name__ == "__main__":

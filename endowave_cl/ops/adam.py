@@ -74,6 +74,19 @@ def element_lrs(name: str, shape: Tuple[int, ...], lrs: Mapping[str, float]) -> 
     return np.where(col < split, lra, lrb).astype(np.float32).reshape(shape)
 
 
+def opacity_reset(rt, opacity, cap: float) -> None:
+    """In place: opacity [N] float32 (logits) = min(opacity, cap), cap the logit of the reset value
+    (cl/opacity_reset.cl; reference: reference/adam.py opacity_reset_ref).  The trainer zeroes the
+    opacity group's moments with DeviceAdam.reset_moments beside it, as 3DGS does."""
+    n = int(opacity.size)
+    if n == 0:
+        return
+    if opacity.dtype != np.float32 or not opacity.flags.c_contiguous:
+        raise EndowaveError(f"opacity_reset: opacity must be C-contiguous float32, got {opacity.dtype}")
+    rt.launch_1d(rt.kernel("opacity_reset.cl", "opacity_reset"), n, WORK_GROUP, opacity.data, np.float32(cap),
+                 np.int32(n))
+
+
 class DeviceAdam:
     """Adam over the seven parameter groups, one kernel launch per step."""
 

@@ -1,18 +1,54 @@
-"""Small device utilities on top of cl/util.cl."""
+"""Small device utilities on top of cl/util.cl, and the one blocking read-back of a step."""
 from __future__ import annotations
+
+from typing import Dict, Mapping
 
 import numpy as np
 
 WORK_GROUP = 128
+READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
 
-def any_nonfinite(rt, arrays) -> bool:
-    """True when any element of the given float32 device arrays is NaN or infinite (one read-back)."""
+def nonfinite_flag(rt, arrays, flag=None):
+    """Enqueue the NaN / Inf check of the given float32 device arrays, without reading it:
+    returns flag (cla int32 [1], zeroed here when not given), 1 when any element is not finite."""
     import pyopencl.array as cla
-    flag = cla.zeros(rt.queue, (1,), np.int32)
+    if flag is None:
+        flag = cla.zeros(rt.queue, (1,), np.int32)
     k = rt.kernel("util.cl", "any_nonfinite_f32")
     for a in arrays:
         if a.size == 0:
             continue
         rt.launch_1d(k, a.size, WORK_GROUP, a.data, np.int32(a.size), flag.data)
-    return bool(flag.get()[0])
+    return flag
+
+
+def any_nonfinite(rt, arrays) -> bool:
+    """True when any element of the given float32 device arrays is NaN or infinite (one read-back)."""
+    return bool(nonfinite_flag(rt, arrays).get()[0])
+
+
+def read_back(rt, arrays: Mapping[str, object]) -> Dict[str, np.ndarray]:
+    """Host copies of several small device arrays with one blocking read: each is copied (on the
+    device, in queue order) into one staging buffer, which is read once.  {name: numpy array of
+    the same dtype and shape}; empty arrays come back empty."""
+    import pyopencl as cl
+    import pyopencl.array as cla
+    layout, total = [], 0
+    for name, a in arrays.items():
+        layout.append((name, a, total))
+        total += -(-int(a.nbytes) // READBACK_ALIGN) * READBACK_ALIGN
+    out: Dict[str, np.ndarray] = {}
+    if total == 0:
+        return {name: np.empty(a.shape, a.dtype) for name, a in arrays.items()}
+    staging = cla.empty(rt.queue, (total,), np.uint8)
+    for name, a, off in layout:
+        if a.nbytes:
+            if not a.flags.c_contiguous:
+                raise ValueError(f"read_back: {name!r} is not C-contiguous")
+            cl.enqueue_copy(rt.queue, staging.data, a.base_data, byte_count=int(a.nbytes), dst_offset=off,
+                            src_offset=int(a.offset))
+    host = staging.get()   # the blocking read
+    for name, a, off in layout:
+        out[name] = host[off:off + int(a.nbytes)].view(a.dtype).reshape(a.shape).copy()
+    return out

@@ -1,4 +1,5 @@
-"""numpy reference of cl/adam.cl (torch.optim.Adam's update, per-element learning rates)."""
+"""numpy references of cl/adam.cl (torch.optim.Adam's update, per-element learning rates) and
+cl/opacity_reset.cl (the 3DGS opacity reset)."""
 from __future__ import annotations
 
 import numpy as np
@@ -22,3 +23,8 @@ def adam_step_ref(param: np.ndarray, grad: np.ndarray, exp_avg: np.ndarray, exp_
     p_new = p - (lr / bc1) * m_new / (np.sqrt(v_new) / np.sqrt(bc2) + eps)
     f32 = lambda new, old: np.where(live, new, old).astype(np.float32)
     return f32(p_new, p), f32(m_new, m), f32(v_new, v)
+
+
+def opacity_reset_ref(opacity: np.ndarray, cap: float) -> np.ndarray:
+    """The 3DGS opacity reset: min(opacity, cap) as float32 [N] (logits; cap = logit of the value)."""
+    return np.minimum(np.asarray(opacity, np.float32), np.float32(cap))

@@ -170,14 +170,3 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
 def moment_source_index(source_index: np.ndarray, is_new: np.ndarray) -> np.ndarray:
     """source_index with -1 on new rows: what DeviceAdam.remap needs to zero their moments."""
     return np.where(np.asarray(is_new, bool), -1, np.asarray(source_index)).astype(np.int64)
-
-
-def reset_opacity(g: Gaussians, value: float = 0.01) -> Gaussians:
-    """3DGS opacity reset: opacity = min(opacity, value) (as logits); the other parameters are kept.
-
-    The trainer should also zero the Adam moments of the opacity group (DeviceAdam.reset_moments).
-    """
-    d = g.as_dict()
-    d = {n: a.copy() for n, a in d.items()}
-    d["opacity"] = np.minimum(d["opacity"], np.float32(logit(value)))
-    return Gaussians(**d)

@@ -16,7 +16,7 @@ but a handful of loss sums crosses to the host.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -77,6 +77,15 @@ def _blur(rt, x, window) -> object:
     return conv_axis(rt, conv_axis(rt, x, window, axis=1, border="zero"), window, axis=0, border="zero")
 
 
+@dataclass
+class PendingLosses:
+    """The losses of one step, enqueued on the device: the gradient image, the device sums the loss
+    values are made of, and how the host finishes them once it has read the sums back."""
+    v_features: object                 # cla [H, W, CF]: d total / d features
+    sums: Dict[str, object]            # "image": cla [groups, NSUM] f32; "wavelet": cla [slots * groups] f32
+    finish: Callable[[Dict[str, np.ndarray]], Tuple[float, Dict[str, float]]]   # host sums -> (total, parts)
+
+
 def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
                           wavelet_config=None) -> Tuple[float, Dict[str, float], object]:
     """(total loss, its parts, v_features [H, W, CF]) for the rendered features [H, W, CF] (cla).
@@ -84,7 +93,18 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet); channels: {"depth": k,
     "flow": k} (the colour is channels 0..2).  Terms whose targets are missing are left out, as
     in image_losses_ref (reference/losses.py).  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
+    Reads the sums back (one read); the trainer uses image_losses_enqueue and reads them with the
+    step's other scalars.
     """
+    from ..ops.util import read_back
+    pending = image_losses_enqueue(rt, features, tgt, cfg, channels, wavelet_config)
+    total, parts = pending.finish(read_back(rt, pending.sums))
+    return total, parts, pending.v_features
+
+
+def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
+                         wavelet_config=None) -> PendingLosses:
+    """image_losses_and_grad without the read-back: the kernels are enqueued, nothing is read."""
     import pyopencl as cl
     import pyopencl.array as cla
 
@@ -127,32 +147,37 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,
               tgt.mask.data, gb.data, np.int32(npix), v.data)
 
-    parts: Dict[str, float] = {}
-    wavelet = None
+    sums = {"image": partial}
+    wavelet_finish = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
-        from ..wavelet.config import wavelet_loss_and_grad
+        from ..wavelet.ops import loss_and_grad_deferred
         rgb = cla.empty(q, (H, W, 3), np.float32)
         rt.launch(rt.kernel(KFILE, "take_rgb", opts), gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
-        wavelet, v_rgb = wavelet_loss_and_grad(rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None,
-                                               wavelet_config)
+        sums["wavelet"], wavelet_finish, v_rgb = loss_and_grad_deferred(
+            rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None, wavelet_config.q, wavelet_config.levels,
+            wavelet_config.weights)
         rt.launch(rt.kernel(KFILE, "add_rgb", opts), gsize, (LOCAL,), v.data, v_rgb.data,
                   np.float32(cfg.lambda_wavelet), np.int32(npix))
 
-    s = partial.get().astype(np.float64).sum(axis=0)   # [NSUM]
-    l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb
-    rgb_loss = (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1.0 - ssim)
-    total = cfg.lambda_rgb * rgb_loss
-    parts.update(l1=float(l1), ssim=float(ssim), rgb=float(rgb_loss))
-    if use_depth:
-        parts["depth"] = float(s[2] / tgt.n_depth)
-        total += cfg.lambda_depth * parts["depth"]
-    if use_flow:
-        parts["flow"] = float(s[3] / tgt.n_flow)
-        total += cfg.lambda_flow * parts["flow"]
-    if wavelet is not None:
-        parts["wavelet"] = float(wavelet)
-        total += cfg.lambda_wavelet * wavelet
-    parts["total"] = float(total)
-    mse = s[4] / tgt.n_rgb
-    parts["psnr"] = float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
-    return float(total), parts, v
+    def finish(host: Dict[str, np.ndarray]) -> Tuple[float, Dict[str, float]]:
+        s = host["image"].astype(np.float64).sum(axis=0)   # [NSUM]
+        l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb
+        rgb_loss = (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1.0 - ssim)
+        total = cfg.lambda_rgb * rgb_loss
+        parts: Dict[str, float] = dict(l1=float(l1), ssim=float(ssim), rgb=float(rgb_loss))
+        if use_depth:
+            parts["depth"] = float(s[2] / tgt.n_depth)
+            total += cfg.lambda_depth * parts["depth"]
+        if use_flow:
+            parts["flow"] = float(s[3] / tgt.n_flow)
+            total += cfg.lambda_flow * parts["flow"]
+        if wavelet_finish is not None:
+            wavelet = wavelet_finish(host["wavelet"])
+            parts["wavelet"] = float(wavelet)
+            total += cfg.lambda_wavelet * wavelet
+        parts["total"] = float(total)
+        mse = s[4] / tgt.n_rgb
+        parts["psnr"] = float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
+        return float(total), parts
+
+    return PendingLosses(v, sums, finish)

@@ -8,9 +8,9 @@ One step (``Trainer.train_step``) follows ../shared/DESIGN.md's data flow:
     render_backward                                       (rasterize_bwd -> project4d_bwd)
     Adam                                                  (one fused OpenCL kernel)
 
-Parameters, Adam moments, the rendered images and every frame's targets stay on the device; the
-host reads back a few loss sums per step, a flag per gradient group (the NaN guard), and the
-parameters only when densifying, checkpointing or exporting.
+Parameters, Adam moments, the rendered images and every frame's targets stay on the device; per
+step the host reads the binning's pair count and one small buffer of scalars (the loss sums and the
+gradients' NaN / Inf flag), and the parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
@@ -132,23 +132,38 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self, k: int) -> Dict[str, float]:
-        """One optimisation step on training frame k."""
+        """One optimisation step on training frame k.
+
+        Two blocking reads: the binning's pair count (it sizes the sort's buffers), and, before
+        Adam, one read-back of the step's scalars: the loss sums and the NaN / Inf flag of the
+        gradients.  The camera is uploaded once (project4d; project4d_bwd reuses its buffer)."""
+        from ..ops.util import nonfinite_flag, read_back
         frame, tgt = self.scene.frames[k], self.targets[k]
         out = render(self.rt, self.params, frame.camera, frame.time, tgt.next_time)        # forward
-        total, parts, v_features = self.losses_and_gradient(out, tgt)                    # losses
-        grads = render_backward(self.rt, self.params, out, v_features, densify_stats=self.stats,   # adjoints
+        pending = self.losses_enqueue(out, tgt)                                          # losses
+        grads = render_backward(self.rt, self.params, out, pending.v_features, densify_stats=self.stats,  # adjoints
                                 deterministic=True if self.cfg.deterministic else None)
-        self._check_finite(total, grads, k)
+        host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
+        total, parts = pending.finish(host)
+        self._check_finite(total, bool(host["nonfinite"][0]), k)
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step))  # Adam (v_means -> means)
         self.step += 1
         return parts
 
+    def losses_enqueue(self, out, tgt: FrameTargets):
+        """The step's losses enqueued on the device (train/device_losses.py): a PendingLosses with
+        the gradient image v_features [H, W, C] and the sums the host reads back."""
+        from .device_losses import image_losses_enqueue
+        return image_losses_enqueue(self.rt, out.features, tgt.dev, self.cfg, {"depth": DEPTH, "flow": FLOW.start},
+                                    self.wavelet_config)
+
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
-        [H, W, C], all computed on the device (train/device_losses.py)."""
-        from .device_losses import image_losses_and_grad
-        return image_losses_and_grad(self.rt, out.features, tgt.dev, self.cfg, {"depth": DEPTH, "flow": FLOW.start},
-                                     self.wavelet_config)
+        [H, W, C]: losses_enqueue, then its sums read back (tools/bench_train_step.py times it)."""
+        from ..ops.util import read_back
+        pending = self.losses_enqueue(out, tgt)
+        total, parts = pending.finish(read_back(self.rt, pending.sums))
+        return total, parts, pending.v_features
 
     @property
     def wavelet_config(self):
@@ -157,10 +172,9 @@ class Trainer:
             self._wcfg = WaveletConfig()
         return self._wcfg
 
-    def _check_finite(self, total: float, grads, k: int):
-        from ..ops.util import any_nonfinite
+    def _check_finite(self, total: float, grads_nonfinite: bool, k: int):
         bad = [] if math.isfinite(total) else ["loss"]
-        if any_nonfinite(self.rt, grads.values()):
+        if grads_nonfinite:
             bad.append("gradients")
         if bad:
             raise self._run.fail(self, TrainingDiverged(
@@ -186,9 +200,14 @@ class Trainer:
         self._reset_stats()
 
     def reset_opacity(self):
-        from .densify import reset_opacity
-        g = reset_opacity(download(self.params), self.cfg.opacity_reset_value)
-        self.set_gaussians(g, np.arange(len(g)))
+        """3DGS opacity reset, on the device: opacity = min(opacity, logit(opacity_reset_value)) in
+        place, and the opacity group's Adam moments zeroed (as 3DGS).  The other parameters and
+        moments, and the densification statistics, are left as they are: 3DGS does not reset the
+        statistics here either (before #15 a host round trip through set_gaussians zeroed them as a
+        side effect; at a reset step that is also a densification step they are zero already)."""
+        from ..ops.adam import opacity_reset
+        from .densify import logit
+        opacity_reset(self.rt, self.params["opacity"], np.float32(logit(self.cfg.opacity_reset_value)))
         self.adam.reset_moments("opacity")
 
     # ------------------------------------------------------------------ evaluation, checkpoints

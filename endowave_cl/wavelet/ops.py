@@ -267,6 +267,17 @@ def loss_and_grad(rt, rendered: cla.Array, target: cla.Array, mask: Optional[cla
     The transform is linear, so it runs once on d = m (r - t); the gradient is
     m * W^T(2 lambda_x / n_x * W_x d), n_x = the number of coefficients of the band (H_j W_j C).
     """
+    partial, finish, v = loss_and_grad_deferred(rt, rendered, target, mask, q, levels, weights)
+    return finish(partial.get()), v
+
+
+def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Optional[cla.Array],
+                           q: int, levels: int, weights: Sequence[float]):
+    """loss_and_grad without its blocking read: (partial, finish, v_rendered).
+
+    partial: the device sums [slots * RED_GROUPS] float32 the loss is made of; finish(host copy of
+    partial) -> the loss (float).  The trainer reads partial back with the step's other scalars.
+    """
     _check(rendered, "rendered")
     _check(target, "target")
     if rendered.shape != target.shape:
@@ -308,8 +319,12 @@ def loss_and_grad(rt, rendered: cla.Array, target: cla.Array, mask: Optional[cla
     if mask is not None:
         _launch(rt, scl, v.size, v.data, mask.data, np.float32(1.0), np.int32(npix), np.int32(C),
                 np.int32(1))
-    sums = partial.get().astype(np.float64).reshape(slots, RED_GROUPS).sum(axis=1)
-    loss = 0.0
-    for s_i, (sq, n) in enumerate(zip(sums, sizes)):
-        loss += lam[s_i % len(BANDS)] * sq / n
-    return float(loss), v.reshape(rendered.shape)
+
+    def finish(host_partial: np.ndarray) -> float:
+        sums = np.asarray(host_partial).astype(np.float64).reshape(slots, RED_GROUPS).sum(axis=1)
+        loss = 0.0
+        for s_i, (sq, n) in enumerate(zip(sums, sizes)):
+            loss += lam[s_i % len(BANDS)] * sq / n
+        return float(loss)
+
+    return partial, finish, v.reshape(rendered.shape)
