@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+TINY_SIZE = dict(width=64, height=48, frames=10)   # the training tests' synthetic scene
 ENDONERF_PULLING = SHARED / "data" / "endonerf" / "pulling_soft_tissues"
 
 
@@ -76,3 +77,25 @@ def pulling_scene():
     if not (ENDONERF_PULLING / "poses_bounds.npy").is_file():
         pytest.skip(f"shared EndoNeRF frames not present at {ENDONERF_PULLING}")
     return ENDONERF_PULLING
+
+
+def make_tiny_scene(tmp_path_factory, name: str, seed: int) -> Path:
+    """A TINY_SIZE synthetic scene folder (seeded) under a fresh temporary folder."""
+    from endowave_cl.data.synth import make_synthetic_scene
+    out = tmp_path_factory.mktemp("scene") / name
+    make_synthetic_scene(out, seed=seed, **TINY_SIZE)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """The 64x48, 10-frame synthetic scene (seed 3) the training, run-folder and CLI tests share:
+    read it, never write into it."""
+    return make_tiny_scene(tmp_path_factory, "tiny", seed=3)
+
+
+def tiny_config(**kw):
+    """A TrainConfig for short trainings on tiny_scene: no evaluation, checkpoint or opacity reset
+    on the way unless kw asks for them."""
+    from endowave_cl.train.config import TrainConfig
+    return TrainConfig(**{**dict(eval_every=0, checkpoint_every=0, opacity_reset_every=100000, seed=0), **kw})

@@ -26,14 +26,6 @@ def _one_line_error(r, *words):
     return err
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    from endowave_cl.data.synth import make_synthetic_scene
-    out = tmp_path_factory.mktemp("scene") / "tiny"
-    make_synthetic_scene(out, seed=3, width=64, height=48, frames=10)
-    return out
-
-
 # ------------------------------------------------------------------ config ranges
 def test_defaults_validate_and_every_numeric_key_has_a_range():
     validate_config(TrainConfig(), "defaults")

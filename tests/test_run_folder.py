@@ -12,32 +12,17 @@ import time
 import numpy as np
 import pytest
 
-SIZE = dict(width=64, height=48, frames=10)
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    from endowave_cl.data.synth import make_synthetic_scene
-    out = tmp_path_factory.mktemp("scene") / "tiny"
-    make_synthetic_scene(out, seed=3, **SIZE)
-    return out
+from conftest import make_tiny_scene, tiny_config
 
 
 @pytest.fixture(scope="module")
 def other_scene(tmp_path_factory):
-    from endowave_cl.data.synth import make_synthetic_scene
-    out = tmp_path_factory.mktemp("scene") / "other"
-    make_synthetic_scene(out, seed=4, **SIZE)
-    return out
+    return make_tiny_scene(tmp_path_factory, "other", seed=4)
 
 
 def _cfg(**kw):
-    from endowave_cl.train.config import TrainConfig
-    base = dict(iterations=20, init_points=500, densify_from=10, densify_every=10, densify_until=30,
-                eval_every=0, checkpoint_every=0, log_every=5, opacity_reset_every=100000, seed=0,
-                use_flow=False)
-    base.update(kw)
-    return TrainConfig(**base)
+    return tiny_config(**{**dict(iterations=20, init_points=500, densify_from=10, densify_every=10,
+                                 densify_until=30, log_every=5, use_flow=False), **kw})
 
 
 def _trainer(scene_path, run, rt, resume=True, msgs=None, **kw):

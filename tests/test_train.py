@@ -8,25 +8,14 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import tiny_config
+
 pytestmark = pytest.mark.slow
-
-SIZE = dict(width=64, height=48, frames=10)
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    from endowave_cl.data.synth import make_synthetic_scene
-    out = tmp_path_factory.mktemp("scene") / "tiny"
-    make_synthetic_scene(out, seed=3, **SIZE)
-    return out
 
 
 def _cfg(**kw):
-    from endowave_cl.train.config import TrainConfig
-    base = dict(iterations=150, init_points=3000, densify_from=50, densify_every=50, densify_until=100,
-                eval_every=0, checkpoint_every=0, log_every=25, opacity_reset_every=100000, seed=0)
-    base.update(kw)
-    return TrainConfig(**base)
+    return tiny_config(**{**dict(iterations=150, init_points=3000, densify_from=50, densify_every=50,
+                                 densify_until=100, log_every=25), **kw})
 
 
 def test_short_training_raises_test_psnr(rt, tiny_scene, tmp_path):
