@@ -48,6 +48,9 @@ def test_defaults_validate_and_every_numeric_key_has_a_range():
     ("sh_degree", "2", "must be 3"),
     ("temporal_freqs", "5", "must be 2"),
     ("flow_method", "bogus", "must be one of dis"),
+    ("wavelet_q", "0", "must be at least 1"),
+    ("wavelet_levels", "1.5", "expects int"),
+    ("wavelet_weight_hh", "-1", "must be at least 0"),
 ])
 def test_bad_values_name_the_key(key, value, words):
     with pytest.raises(EndowaveError, match=None) as e:

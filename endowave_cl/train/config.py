@@ -11,6 +11,9 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any, Dict, Mapping, Optional
 
 from ..errors import EndowaveError
+from ..wavelet.config import WaveletConfig
+
+_WAVELET = WaveletConfig()   # the wavelet loss's defaults, defined once in wavelet/config.py
 
 
 # Density relative to the image, so that one default suits 160x128 and 640x512: initial Gaussians
@@ -89,6 +92,13 @@ class TrainConfig:
     use_depth: bool = True
     use_flow: bool = True
     use_wavelet: bool = True
+    # -- rational-wavelet loss (wavelet/config.py WaveletConfig documents each; defaults from there) --
+    wavelet_q: int = _WAVELET.q                     # rational factor a = (q + 1) / q
+    wavelet_levels: int = _WAVELET.levels           # decomposition depth
+    wavelet_weight_ll: float = _WAVELET.weights[0]  # weight of each band's mean squared coefficient
+    wavelet_weight_lh: float = _WAVELET.weights[1]  # error, the same at every level
+    wavelet_weight_hl: float = _WAVELET.weights[2]
+    wavelet_weight_hh: float = _WAVELET.weights[3]
 
     def resolve_density(self, width: int, height: int) -> None:
         """Replace init_points = 0 and max_gaussians = 0 by their per-pixel defaults for width x
@@ -97,6 +107,12 @@ class TrainConfig:
             self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
         if self.init_points <= 0:
             self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
+
+    def wavelet_config(self):
+        """The wavelet_* keys as the WaveletConfig the device loss takes."""
+        return WaveletConfig(q=self.wavelet_q, levels=self.wavelet_levels,
+                             weights=(self.wavelet_weight_ll, self.wavelet_weight_lh, self.wavelet_weight_hl,
+                                      self.wavelet_weight_hh))
 
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
@@ -172,6 +188,9 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
+    # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
+    "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,
+    "wavelet_weight_lh": _NON_NEGATIVE, "wavelet_weight_hl": _NON_NEGATIVE, "wavelet_weight_hh": _NON_NEGATIVE,
 }
 # keys whose value is fixed in this version: the model layout (gaussians.py SH_DEGREE,
 # TEMPORAL_FREQS) is compiled into the kernels and the initialisation; any other value would be

@@ -21,7 +21,7 @@ from typing import Callable, Dict, Optional, Tuple
 import numpy as np
 
 from ..runtime import round_up
-from ..loss_constants import FLOW_HUBER_DELTA, gaussian_window_1d
+from ..loss_constants import gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -141,7 +141,7 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
         np.int32(use_depth), np.int32(use_flow),
         np.float32(w_rgb * (1.0 - cfg.lambda_dssim)), np.float32(w_rgb * cfg.lambda_dssim),
         np.float32(cfg.lambda_depth / tgt.n_depth), np.float32(cfg.lambda_flow / tgt.n_flow),
-        np.float32(getattr(cfg, "flow_huber_delta", FLOW_HUBER_DELTA)), np.int32(npix),
+        np.float32(cfg.flow_huber_delta), np.int32(npix),
         v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
     gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
     rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,

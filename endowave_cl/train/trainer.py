@@ -74,8 +74,8 @@ class Trainer:
         else:
             from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
-                               max_points=cfg.init_points, seed=cfg.seed,
-                               time_scale=cfg.init_time_scale,
+                               max_points=cfg.init_points, seed=cfg.seed, sh_degree=cfg.sh_degree,
+                               nt=cfg.temporal_freqs, time_scale=cfg.init_time_scale,
                                flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
             ck = None
@@ -167,9 +167,9 @@ class Trainer:
 
     @property
     def wavelet_config(self):
-        from ..wavelet.config import WaveletConfig
+        """The wavelet loss's settings (TrainConfig wavelet_*), made once per trainer."""
         if not hasattr(self, "_wcfg"):
-            self._wcfg = WaveletConfig()
+            self._wcfg = self.cfg.wavelet_config()
         return self._wcfg
 
     def _check_finite(self, total: float, grads_nonfinite: bool, k: int):

@@ -1,0 +1,441 @@
+"""Every TrainConfig key changes what it claims to (issue #15: "every setting in TrainConfig and
+actually used").
+
+One check per key, parametrised: the key is set to a value other than its default and the check
+looks at the object that consumes it (the training loop with its steps stubbed, the learning-rate
+map, the initial Gaussians, density control, the device losses, the run loader) for the effect the
+key's comment in train/config.py promises.  CHECKS must name every key: a new key without a check
+fails test_every_key_has_a_check.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import fields
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from conftest import tiny_config
+from endowave_cl.errors import EndowaveError
+from endowave_cl.gaussians import Gaussians
+from endowave_cl.train.config import TrainConfig, load_config
+from endowave_cl.train.densify import densify_and_prune, logit
+
+QUICK = dict(init_points=50, use_flow=False, init_velocity=False)   # cheap trainers: no flow to compute
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    from endowave_cl.data.scene import load_scene
+    return load_scene(tiny_scene)
+
+
+def _trainer(scene, rt, tmp_path, **kw):
+    from endowave_cl.train.trainer import Trainer
+    return Trainer(scene, tiny_config(**{**QUICK, **kw}), tmp_path / "run", rt, log=lambda s: None, resume=False)
+
+
+# ------------------------------------------------------------------ the training loop, steps stubbed
+def _loop(scene, rt, tmp_path, **kw):
+    """Run Trainer.train with train_step, density control's host work (densify_and_prune), the
+    opacity reset, evaluation and saving replaced by recorders: {event: [steps]}."""
+    import endowave_cl.train.densify as densify_module
+    tr = _trainer(scene, rt, tmp_path, **kw)
+    ev = {"densify": [], "reset": [], "evaluate": [], "save": [], "prune_big": []}
+
+    def step(k):
+        tr.step += 1
+        return {"total": 1.0, "psnr": 20.0}
+
+    def densify_and_prune(g, grad_accum, count, max_radius, cfg, extent, prune_big=False, stats=None):
+        ev["densify"].append(tr.step)
+        ev["prune_big"].append(prune_big)
+        stats["is_new"] = np.zeros(len(g), bool)
+        return g, np.arange(len(g))
+
+    tr.train_step = step
+    tr.reset_opacity = lambda: ev["reset"].append(tr.step)
+    tr.evaluate = lambda: ev["evaluate"].append(tr.step) or {"psnr": 0.0, "psnr_masked": 0.0, "ssim": 0.0}
+    tr.save = lambda: ev["save"].append(tr.step)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(densify_module, "densify_and_prune", densify_and_prune)
+        tr.train(progress=False)
+    ev["steps"] = tr.step
+    ev["history"] = [h["step"] for h in tr.history]
+    return ev
+
+
+LOOP = dict(iterations=6, densify_from=2, densify_every=2, densify_until=4, log_every=3)
+
+
+def _loop_effect(key, value, what):
+    def check(scene, rt, tmp_path):
+        base = _loop(scene, rt, tmp_path / "a", **LOOP)
+        new = _loop(scene, rt, tmp_path / "b", **{**LOOP, key: value})
+        return what(base, new)
+    return check
+
+
+def _iterations(b, n):
+    assert (b["steps"], n["steps"]) == (6, 4)
+
+
+def _log_every(b, n):
+    assert b["history"] == [3, 6] and n["history"] == [2, 4, 6]
+
+
+def _eval_every(b, n):
+    assert b["evaluate"] == [6] and n["evaluate"] == [2, 4, 6]   # every 2 steps, and the final one
+
+
+def _checkpoint_every(b, n):
+    assert b["save"] == [6] and n["save"] == [3, 6, 6]           # every 3 steps, and the final one
+
+
+def _densify_from(b, n):
+    assert b["densify"] == [2, 4] and n["densify"] == [4]
+
+
+def _densify_every(b, n):
+    assert b["densify"] == [2, 4] and n["densify"] == [3]
+
+
+def _densify_until(b, n):
+    assert b["densify"] == [2, 4] and n["densify"] == [2, 4, 6]
+
+
+def _opacity_reset_every(b, n):
+    # resets only while densifying; large screen / world sizes are pruned once past the first reset
+    assert b["reset"] == [] and n["reset"] == [2, 4]
+    assert b["prune_big"] == [False, False] and n["prune_big"] == [False, True]
+
+
+# ------------------------------------------------------------------ the trainer's own settings
+def _minutes(scene, rt, tmp_path):
+    assert _trainer(scene, rt, tmp_path / "a")._start_budget() is None
+    plan = _trainer(scene, rt, tmp_path / "b", minutes=2.0)._start_budget()
+    assert plan is not None and plan.seconds == 120.0
+
+
+def _seed(scene, rt, tmp_path):
+    a = _trainer(scene, rt, tmp_path / "a").params["means"].get()
+    b = _trainer(scene, rt, tmp_path / "b", seed=1).params["means"].get()
+    assert a.shape == b.shape and not np.array_equal(a, b)
+
+
+def _deterministic(scene, rt, tmp_path, monkeypatch):
+    import endowave_cl.train.trainer as trainer_module
+    seen = []
+    real = trainer_module.render_backward
+
+    def spy(*a, **kw):
+        seen.append(kw["deterministic"])
+        return real(*a, **kw)
+
+    monkeypatch.setattr(trainer_module, "render_backward", spy)
+    for run, value in (("a", False), ("b", True)):
+        tr = _trainer(scene, rt, tmp_path / run, deterministic=value)
+        tr.train_step(tr.scene.train_indices[0])
+    assert seen == [None, True]   # None: the device's default (CPU: deterministic); True: forced
+
+
+def _downscale(scene, rt, tmp_path):
+    from endowave_cl.checkpoint import checkpoint_path, save_checkpoint
+    from endowave_cl.run_io import load_run
+    widths = []
+    for run, value in (("a", 1.0), ("b", 2.0)):
+        d = tmp_path / run
+        d.mkdir()
+        cfg = TrainConfig(downscale=value)
+        (d / "config.json").write_text(json.dumps({**cfg.to_dict(), "scene": str(scene.path)}))
+        save_checkpoint(checkpoint_path(d, 1), Gaussians.random(3), None, 1, cfg.to_dict())
+        widths.append(load_run(d).scene.width)
+    assert widths == [scene.width, scene.width // 2]
+
+
+def _init_points(scene, rt, tmp_path):
+    assert len(_trainer(scene, rt, tmp_path / "a").params["means"]) == QUICK["init_points"]
+    assert len(_trainer(scene, rt, tmp_path / "b", init_points=80).params["means"]) == 80
+
+
+def _init_time_scale(scene, rt, tmp_path):
+    for run, value in (("a", 0.2), ("b", 0.05)):
+        s = _trainer(scene, rt, tmp_path / run, init_time_scale=value).params["scales"].get()
+        np.testing.assert_allclose(np.exp(s[:, 3]), value, rtol=1e-5)   # still Gaussians: t is axis 3
+
+
+def _init_velocity(scene, rt, tmp_path):
+    from endowave_cl.gaussians import download
+    still = download(_trainer(scene, rt, tmp_path / "a").params)
+    moving = download(_trainer(scene, rt, tmp_path / "b", init_velocity=True).params)
+    from endowave_cl.train.motion import motion_of
+    from endowave_cl.gaussians import covariance_4d
+    assert np.abs(motion_of(covariance_4d(still))[2]).max() < 1e-6
+    assert np.abs(motion_of(covariance_4d(moving))[2]).max() > 1e-3
+
+
+def _flow_method(scene, rt, tmp_path, monkeypatch):
+    import endowave_cl.data.flow as flow_module
+    seen = []
+    monkeypatch.setattr(flow_module, "flow_for_scene", lambda sc, method, progress: seen.append(method) or {})
+    _trainer(scene, rt, tmp_path / "a", use_flow=True)
+    _trainer(scene, rt, tmp_path / "b", use_flow=True, flow_method="tvl1")
+    assert seen == ["dis", "tvl1"]
+
+
+def _fixed(key, default):
+    """The model layout is fixed in this version: the trainer builds it from the key, other values
+    are refused with a one-line error."""
+    def check(scene, rt, tmp_path):
+        sh = _trainer(scene, rt, tmp_path / "a").params["sh"].shape      # [N, NT+1, (L+1)^2, 3]
+        layout = {"temporal_freqs": sh[1] - 1, "sh_degree": int(round(math.sqrt(sh[2]))) - 1}
+        assert layout[key] == default
+        with pytest.raises(EndowaveError, match=f"key '{key}' must be {default}"):
+            load_config(None, {key: str(default - 1)})
+    return check
+
+
+# ------------------------------------------------------------------ learning rates
+def _lrs(cfg, step=0, extent=2.0):
+    from endowave_cl.train.trainer import Trainer
+    return Trainer.group_lrs(SimpleNamespace(cfg=cfg, extent=extent), step)
+
+
+def _lr(key, group, value):
+    def check(scene, rt, tmp_path):
+        assert _lrs(TrainConfig())[group] != value
+        assert _lrs(TrainConfig(**{key: value}))[group] == pytest.approx(value)
+    return check
+
+
+def _lr_position_init(scene, rt, tmp_path):
+    assert _lrs(TrainConfig(lr_position_init=3e-4))["means"] == pytest.approx(3e-4 * 2.0)   # x extent
+
+
+def _lr_position_final(scene, rt, tmp_path):
+    c = TrainConfig(iterations=100, lr_position_final=5e-6)
+    assert _lrs(c, 100)["means"] == pytest.approx(5e-6 * 2.0)
+    assert _lrs(TrainConfig(iterations=100), 100)["means"] == pytest.approx(1.6e-6 * 2.0)
+
+
+def _lr_position_steps(scene, rt, tmp_path):
+    c = TrainConfig(iterations=100, lr_position_steps=10)
+    assert _lrs(c, 10)["means"] == pytest.approx(c.lr_position_final * 2.0)
+    assert _lrs(TrainConfig(iterations=100), 10)["means"] > 2 * c.lr_position_final * 2.0
+
+
+def _lr_features_rest_divisor(scene, rt, tmp_path):
+    assert _lrs(TrainConfig())["sh_rest"] == pytest.approx(2.5e-3 / 20)
+    assert _lrs(TrainConfig(lr_features_rest_divisor=5.0))["sh_rest"] == pytest.approx(2.5e-3 / 5)
+
+
+# ------------------------------------------------------------------ density control (host)
+def _pair(n=4, scale=math.log(0.005), opacity=0.5):
+    g = Gaussians.random(n, seed=0)
+    g.scales[:] = scale
+    g.scales[:, 3] = math.log(0.2)
+    g.opacity[:] = logit(opacity)
+    g.quat_l[:] = g.quat_r[:] = [1, 0, 0, 0]
+    return g
+
+
+def _densify(g, cfg, grad=1e-3, radius=1.0, prune_big=False):
+    info = {}
+    n = len(g)
+    out, _ = densify_and_prune(g, np.full(n, grad), np.ones(n), np.full(n, radius), cfg, 1.0,
+                               prune_big=prune_big, stats=info)
+    return out, info
+
+
+def _densify_effect(what):
+    def check(scene, rt, tmp_path):
+        what()
+    return check
+
+
+def _densify_grad_threshold():
+    assert _densify(_pair(), TrainConfig(), grad=3e-4)[1]["cloned"] == 4
+    assert _densify(_pair(), TrainConfig(densify_grad_threshold=5e-4), grad=3e-4)[1]["cloned"] == 0
+
+
+def _percent_dense():
+    assert _densify(_pair(), TrainConfig())[1]["cloned"] == 4                 # 0.005 <= 0.01: clone
+    info = _densify(_pair(), TrainConfig(percent_dense=0.001))[1]             # 0.005 > 0.001: split
+    assert info["cloned"] == 0 and info["split"] == 4
+
+
+def _split_children():
+    big = dict(scale=math.log(0.05))
+    assert len(_densify(_pair(**big), TrainConfig())[0]) == 8
+    assert len(_densify(_pair(**big), TrainConfig(split_children=3))[0]) == 12
+
+
+def _split_scale_divisor():
+    from endowave_cl.gaussians import covariance_4d
+    from endowave_cl.train.motion import spatial_size
+    g = _pair(scale=math.log(0.01))
+    g.scales[:, 0] = math.log(0.05)        # the major axis (x) is the one divided
+    sizes = [spatial_size(covariance_4d(_densify(g, TrainConfig(split_scale_divisor=d))[0])).max()
+             for d in (1.6, 3.0)]
+    assert sizes[0] == pytest.approx(0.05 / 1.6, rel=1e-3) and sizes[1] == pytest.approx(0.05 / 3.0, rel=1e-3)
+
+
+def _prune_opacity():
+    low = dict(opacity=0.004)
+    assert len(_densify(_pair(**low), TrainConfig(), grad=0)[0]) == 0        # below 0.005: pruned
+    assert len(_densify(_pair(**low), TrainConfig(prune_opacity=0.001), grad=0)[0]) == 4
+
+
+def _prune_screen_size():
+    assert len(_densify(_pair(), TrainConfig(), grad=0, radius=30.0, prune_big=True)[0]) == 0
+    assert len(_densify(_pair(), TrainConfig(prune_screen_size=40.0), grad=0, radius=30.0, prune_big=True)[0]) == 4
+
+
+def _prune_world_size():
+    assert len(_densify(_pair(), TrainConfig(), grad=0, prune_big=True)[0]) == 4       # 0.005 < 0.1
+    assert len(_densify(_pair(), TrainConfig(prune_world_size=0.001), grad=0, prune_big=True)[0]) == 0
+
+
+def _max_gaussians():
+    assert len(_densify(_pair(), TrainConfig())[0]) == 8                       # 0: no cap
+    assert len(_densify(_pair(), TrainConfig(max_gaussians=6))[0]) == 6
+
+
+def _opacity_reset_value(scene, rt, tmp_path):
+    from endowave_cl.train.densify import sigmoid
+    tr = _trainer(scene, rt, tmp_path / "a", opacity_reset_value=0.05)
+    before = tr.params["opacity"].get()
+    tr.reset_opacity()
+    after = sigmoid(tr.params["opacity"].get())
+    assert (sigmoid(before) > 0.05).any()
+    assert after.max() == pytest.approx(0.05, rel=1e-5)
+
+
+# ------------------------------------------------------------------ the losses (device)
+def _losses(rt, cfg):
+    """parts of image_losses_and_grad on a fixed random 24x20 frame (depth, flow, a mask), with the
+    wavelet settings taken from cfg as the trainer takes them."""
+    import pyopencl.array as cla
+    from endowave_cl.layout import CHANNELS, DEPTH, FLOW
+    from endowave_cl.train.device_losses import image_losses_and_grad, prepare_targets
+    rng = np.random.default_rng(0)
+    H, W = 20, 24
+    feats = rng.uniform(0, 1, (H, W, CHANNELS)).astype(np.float32)
+    feats[..., FLOW] *= 20.0                                               # flow errors beyond 4 px
+    tgt = prepare_targets(rt, rng.uniform(0, 1, (H, W, 3)), (rng.uniform(0, 1, (H, W)) > 0.2),
+                          rng.uniform(0.5, 1, (H, W)), rng.uniform(-1, 1, (H, W, 2)), None)
+    total, parts, _ = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt, cfg,
+                                            {"depth": DEPTH, "flow": FLOW.start}, cfg.wavelet_config())
+    return parts
+
+
+def _loss_effect(key, value, what):
+    def check(scene, rt, tmp_path):
+        what(_losses(rt, TrainConfig()), _losses(rt, TrainConfig(**{key: value})))
+    return check
+
+
+def _total_changes(part, delta):
+    """The part is the same and the total changes by delta (new lambda - old lambda) x the part."""
+    def what(b, n):
+        assert n[part] == pytest.approx(b[part], rel=1e-6) and b[part] > 0
+        assert n["total"] - b["total"] == pytest.approx(delta * b[part], rel=1e-5)
+    return what
+
+
+def _lambda_dssim(b, n):
+    assert n["rgb"] == pytest.approx(0.5 * n["l1"] + 0.5 * (1 - n["ssim"]), rel=1e-6)
+    assert b["rgb"] == pytest.approx(0.8 * b["l1"] + 0.2 * (1 - b["ssim"]), rel=1e-6)
+
+
+def _flow_huber_delta(b, n):
+    assert n["flow"] > b["flow"]          # inf: pure squared error, larger for errors beyond 4 px
+
+
+def _dropped(part):
+    def what(b, n):
+        assert part in b and part not in n
+    return what
+
+
+def _wavelet_changes(b, n):
+    assert n["wavelet"] != pytest.approx(b["wavelet"], rel=1e-4)
+    assert n["l1"] == b["l1"]
+
+
+CHECKS = {
+    "iterations": _loop_effect("iterations", 4, _iterations),
+    "minutes": _minutes,
+    "seed": _seed,
+    "deterministic": _deterministic,
+    "log_every": _loop_effect("log_every", 2, _log_every),
+    "eval_every": _loop_effect("eval_every", 2, _eval_every),
+    "checkpoint_every": _loop_effect("checkpoint_every", 3, _checkpoint_every),
+    "downscale": _downscale,
+    "init_points": _init_points,
+    "init_time_scale": _init_time_scale,
+    "init_velocity": _init_velocity,
+    "max_gaussians": _densify_effect(_max_gaussians),
+    "flow_method": _flow_method,
+    "sh_degree": _fixed("sh_degree", 3),
+    "temporal_freqs": _fixed("temporal_freqs", 2),
+    "lr_position_init": _lr_position_init,
+    "lr_position_final": _lr_position_final,
+    "lr_position_steps": _lr_position_steps,
+    "lr_time": _lr("lr_time", "means_t", 3e-4),
+    "lr_features": _lr("lr_features", "sh", 1e-2),
+    "lr_features_rest_divisor": _lr_features_rest_divisor,
+    "lr_opacity": _lr("lr_opacity", "opacity", 0.02),
+    "lr_scales": _lr("lr_scales", "scales", 0.01),
+    "lr_rotation": _lr("lr_rotation", "quat_r", 0.003),
+    "lr_phase": _lr("lr_phase", "phase", 0.01),
+    "densify_from": _loop_effect("densify_from", 3, _densify_from),
+    "densify_every": _loop_effect("densify_every", 3, _densify_every),
+    "densify_until": _loop_effect("densify_until", 6, _densify_until),
+    "densify_grad_threshold": _densify_effect(_densify_grad_threshold),
+    "percent_dense": _densify_effect(_percent_dense),
+    "split_children": _densify_effect(_split_children),
+    "split_scale_divisor": _densify_effect(_split_scale_divisor),
+    "prune_opacity": _densify_effect(_prune_opacity),
+    "prune_screen_size": _densify_effect(_prune_screen_size),
+    "prune_world_size": _densify_effect(_prune_world_size),
+    "opacity_reset_every": _loop_effect("opacity_reset_every", 2, _opacity_reset_every),
+    "opacity_reset_value": _opacity_reset_value,
+    "lambda_rgb": _loss_effect("lambda_rgb", 2.0, _total_changes("rgb", 1.0)),
+    "lambda_dssim": _loss_effect("lambda_dssim", 0.5, _lambda_dssim),
+    "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.0)),
+    "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
+    "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
+    "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
+    "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
+    "use_flow": _loss_effect("use_flow", False, _dropped("flow")),
+    "use_wavelet": _loss_effect("use_wavelet", False, _dropped("wavelet")),
+    "wavelet_q": _loss_effect("wavelet_q", 1, _wavelet_changes),
+    "wavelet_levels": _loss_effect("wavelet_levels", 1, _wavelet_changes),
+    "wavelet_weight_ll": _loss_effect("wavelet_weight_ll", 8.0, _wavelet_changes),
+    "wavelet_weight_lh": _loss_effect("wavelet_weight_lh", 8.0, _wavelet_changes),
+    "wavelet_weight_hl": _loss_effect("wavelet_weight_hl", 8.0, _wavelet_changes),
+    "wavelet_weight_hh": _loss_effect("wavelet_weight_hh", 8.0, _wavelet_changes),
+}
+
+
+def test_every_key_has_a_check():
+    assert set(CHECKS) == {f.name for f in fields(TrainConfig)}
+
+
+@pytest.mark.parametrize("key", sorted(CHECKS))
+def test_key_changes_what_it_claims(key, scene, rt, tmp_path, monkeypatch):
+    check = CHECKS[key]
+    if "monkeypatch" in check.__code__.co_varnames[:check.__code__.co_argcount]:
+        check(scene, rt, tmp_path, monkeypatch)
+    else:
+        check(scene, rt, tmp_path)
+
+
+def test_trainer_passes_the_wavelet_keys_to_the_loss(scene, rt, tmp_path):
+    tr = _trainer(scene, rt, tmp_path, wavelet_q=1, wavelet_levels=3, wavelet_weight_ll=1.0,
+                  wavelet_weight_lh=2.0, wavelet_weight_hl=3.0, wavelet_weight_hh=4.0)
+    w = tr.wavelet_config
+    assert (w.q, w.levels, w.weights) == (1, 3, (1.0, 2.0, 3.0, 4.0))
