@@ -42,8 +42,8 @@ class TrainConfig:
     init_points: int = 0            # Gaussians created by init_gaussians; 0: INIT_POINTS_PER_PIXEL per
                                     # pixel of one frame, at most half of max_gaussians
     init_time_scale: float = 0.2    # initial temporal std (normalised time; 0: 2 training-frame
-                                    # spacings). 0.2 keeps a Gaussian visible over ~half the sequence:
-                                    # +0.5 dB over 2 spacings after 300 demo steps (24.7 vs 24.2 dB)
+                                    # spacings). 0.2 keeps a Gaussian visible over ~half the sequence,
+                                    # which fits better than 2 spacings (docs/ARCHITECTURE.md, Figures)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:

@@ -18,9 +18,8 @@ Rules (3DGS defaults from TrainConfig):
   split is triggered by a screen-space (spatial) gradient, which says nothing about time, and
   children that kept the lifetime but were drawn at other times (4DGS samples the 4D Gaussian)
   would stack where the parent was alone.  Every other parameter is copied; the parent is removed.
-  (Drawing centres at random, as 3DGS does, leaves holes where both children land on one side:
-  on the pulling frames one such densification cost 7 dB of training PSNR, this rule 3; see
-  docs/QUALITY.md.)
+  (Drawing centres at random, as 3DGS does, leaves holes where both children land on one side,
+  and costs more PSNR at each densification than this rule: docs/ARCHITECTURE.md, Figures.)
 - Clones, the Gaussians they were cloned from, and split children get the opacity that, stacked
   k-fold, composites to the original's (``share_opacity``; Rota Bulo et al. 2024), so density
   control does not brighten what was already fitted.
