@@ -226,16 +226,21 @@ def test_forward_vector_saturated_tiny_oclgrind(rt, monkeypatch):
 VEC_SHAPES = [(4, 4), (8, 4), (8, 8), (16, 8), (16, 16)]
 
 
-@pytest.mark.parametrize("vw,bw", VEC_SHAPES)
-@pytest.mark.parametrize("case", [FWD_CASES[0], FWD_CASES[1]])
-def test_forward_vector_widths(rt, monkeypatch, vw, bw, case):
-    """Other lane counts and pixel-block shapes of the vector variant."""
+def vector_shape_scene(rt, monkeypatch, vw, bw, case):
+    """Select the vector variant at vw lanes and block width bw (skipped where it does not build)
+    and make the scene of case (seed, n, w, h, C, sigma range, opacity range)."""
     monkeypatch.setenv(ENV_VARIANT, "vector")
     monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
     monkeypatch.setenv(ENV_VEC_BLOCK_W, str(bw))
     require_builds(rt, vw, bw)
-    seed, n, w, h, C, sigma, op = case
-    sc = make_scene(seed, n, w, h, C, sigma, op)
+    return make_scene(*case)
+
+
+@pytest.mark.parametrize("vw,bw", VEC_SHAPES)
+@pytest.mark.parametrize("case", [FWD_CASES[0], FWD_CASES[1]])
+def test_forward_vector_widths(rt, monkeypatch, vw, bw, case):
+    """Other lane counts and pixel-block shapes of the vector variant."""
+    sc = vector_shape_scene(rt, monkeypatch, vw, bw, case)
     _, r = run_fwd(rt, sc)
     check_fwd(r, ref_fwd(sc))
 
@@ -280,14 +285,9 @@ BWD_CASES = [
 @pytest.mark.parametrize("case", [BWD_CASES[1], BWD_CASES[4]])
 def test_adjoint_vector_widths(rt, monkeypatch, vw, bw, case):
     """Other lane counts and pixel-block shapes of the vector variant, both reduction modes."""
-    monkeypatch.setenv(ENV_VARIANT, "vector")
-    monkeypatch.setenv(ENV_VEC_WIDTH, str(vw))
-    monkeypatch.setenv(ENV_VEC_BLOCK_W, str(bw))
-    require_builds(rt, vw, bw)
-    seed, n, w, h, C, sigma, op = case
-    sc = make_scene(seed, n, w, h, C, sigma, op)
+    sc = vector_shape_scene(rt, monkeypatch, vw, bw, case)
     for det in (False, True):
-        got, ref = run_bwd(rt, sc, seed, deterministic=det)
+        got, ref = run_bwd(rt, sc, case[0], deterministic=det)
         check_bwd(got, ref)
 
 
