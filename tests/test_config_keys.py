@@ -439,3 +439,27 @@ def test_trainer_passes_the_wavelet_keys_to_the_loss(scene, rt, tmp_path):
                   wavelet_weight_lh=2.0, wavelet_weight_hl=3.0, wavelet_weight_hh=4.0)
     w = tr.wavelet_config
     assert (w.q, w.levels, w.weights) == (1, 3, (1.0, 2.0, 3.0, 4.0))
+
+
+def test_opacity_reset_keeps_statistics_and_other_moments(scene, rt, tmp_path):
+    """Trainer.reset_opacity caps the opacity and zeroes its moments only: the other parameters and
+    moments and the densification statistics are what they were."""
+    from endowave_cl.gaussians import PARAM_NAMES
+    tr = _trainer(scene, rt, tmp_path, opacity_reset_value=0.05)
+    for k in tr.scene.train_indices[:2]:
+        tr.train_step(k)
+    params = {n: tr.params[n].get() for n in PARAM_NAMES}
+    state = tr.adam.state_dict()
+    stats = {n: a.get() for n, a in tr.stats.items()}
+    assert stats["count"].max() > 0 and np.abs(state["exp_avg"]["opacity"]).max() > 0
+    tr.reset_opacity()
+    after = tr.adam.state_dict()
+    for n in PARAM_NAMES:
+        if n != "opacity":
+            np.testing.assert_array_equal(tr.params[n].get(), params[n])
+            np.testing.assert_array_equal(after["exp_avg"][n], state["exp_avg"][n])
+            np.testing.assert_array_equal(after["exp_avg_sq"][n], state["exp_avg_sq"][n])
+    np.testing.assert_array_equal(tr.params["opacity"].get(), np.minimum(params["opacity"], np.float32(logit(0.05))))
+    assert not after["exp_avg"]["opacity"].any() and not after["exp_avg_sq"]["opacity"].any()
+    for n, a in stats.items():
+        np.testing.assert_array_equal(tr.stats[n].get(), a)

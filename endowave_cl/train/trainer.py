@@ -202,9 +202,8 @@ class Trainer:
     def reset_opacity(self):
         """3DGS opacity reset, on the device: opacity = min(opacity, logit(opacity_reset_value)) in
         place, and the opacity group's Adam moments zeroed (as 3DGS).  The other parameters and
-        moments, and the densification statistics, are left as they are: 3DGS does not reset the
-        statistics here either (before #15 a host round trip through set_gaussians zeroed them as a
-        side effect; at a reset step that is also a densification step they are zero already)."""
+        moments and the densification statistics are kept, as in 3DGS: the reset lowers opacities,
+        it does not restart the gradient statistics that choose what to densify."""
         from ..ops.adam import opacity_reset
         from .densify import logit
         opacity_reset(self.rt, self.params["opacity"], np.float32(logit(self.cfg.opacity_reset_value)))
