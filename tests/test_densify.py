@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from endowave_cl.gaussians import Gaussians, covariance_4d
 from endowave_cl.train.config import TrainConfig

@@ -24,7 +24,7 @@ from typing import Dict, Optional
 
 import torch
 
-from ..gaussians import MARGINAL_CULL, SH_C0, SH_C1, SH_C2, SH_C3, TEASH_PERIOD  # noqa: F401  (SH_C*: read from here too)
+from ..gaussians import MARGINAL_CULL, SH_C0, SH_C1, SH_C2, SH_C3, TEASH_PERIOD
 from ..layout import TILE, tile_grid
 
 LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
