@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from endowave_cl.reference.project import condition_at, covariance4d, rotation4d
-from endowave_cl.train.motion import (frame_velocities, gaussian_from_covariance, motion_of,
+from endowave_cl.train.motion import (frame_velocities, linear_lifetime, gaussian_from_covariance, motion_of,
                                       moving_covariance, rotation_to_quats, spatial_size)
 
 
@@ -59,7 +59,9 @@ class _Pair:
         self.flow_bw, self.valid_bw = -flow, valid
 
 
-def test_frame_velocities_of_a_translating_plane():
+def _translating_plane():
+    """Three frames of a plane at depth z moving at a constant image velocity, exact flow with a
+    hole of failed consistency checks: (frames, pairs, z, expected world velocity [3])."""
     from endowave_cl.camera import Camera
     H, W, f, z = 20, 24, 30.0, 2.0
     cam = Camera(f, f, W / 2, H / 2, W, H)
@@ -69,10 +71,15 @@ def test_frame_velocities_of_a_translating_plane():
     valid = np.ones((H, W), np.float32)
     valid[5:9, 5:9] = 0                                    # filled in from the neighbours
     pairs = {0: _Pair(0, 1, flow, valid), 1: _Pair(1, 2, flow, valid)}
-    vel = {k: v for k, (v, _) in frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z).items()}
-    want = np.array([1.5 * z / f / 0.25, -0.5 * z / f / 0.25, 0.0])
+    return frames, pairs, z, np.array([1.5 * z / f / 0.25, -0.5 * z / f / 0.25, 0.0])
+
+
+def test_frame_velocities_of_a_translating_plane():
+    frames, pairs, z, want = _translating_plane()
+    vel = {k: v for k, (v, _, _) in frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z).items()}
     for k in (0, 1, 2):
-        np.testing.assert_allclose(vel[k].reshape(-1, 3), np.broadcast_to(want, (H * W, 3)), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(vel[k].reshape(-1, 3), np.broadcast_to(want, (vel[k].size // 3, 3)),
+                                   rtol=1e-5, atol=1e-7)
 
 
 def _translation_scene(path, W=64, H=48, frames=17, shift=(0.9, 0.4), z=2.0):
@@ -149,3 +156,27 @@ def test_short_training_on_deforming_tissue_beats_the_neighbour_mean(rt, tmp_pat
     mean = m["baselines"]["mean"]["psnr"]
     print(f"test PSNR {m['psnr']:.2f} vs neighbour mean {mean:.2f}, flow EPE {m['flow']['model_epe']:.3f} px")
     assert m["psnr"] > mean + 0.5
+
+
+def test_linear_lifetime_follows_the_curvature():
+    size = np.array([0.01, 0.01, 0.01, 0.01])
+    accel = np.array([0.0, 2.0, 1e6, np.nan])          # straight, curved, very curved, unknown
+    t = linear_lifetime(size, accel, floor=0.03, cap=0.2)
+    assert t[0] == 0.2                                  # no curvature: the cap
+    assert np.isclose(t[1], np.sqrt(2 * 0.01 / 2.0))    # 0.5 |a| t^2 = size
+    assert t[2] == 0.03 and t[3] == 0.03                # the floor
+
+
+def test_frame_velocities_acceleration():
+    """Constant velocity: zero acceleration where both estimates are trusted, unknown (NaN) where
+    one is missing or failed; a speed-up between the pairs shows as its change per unit time."""
+    frames, pairs, z, want = _translating_plane()
+    acc = {k: a for k, (_, _, a) in frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z).items()}
+    assert np.isnan(acc[0]).all() and np.isnan(acc[2]).all()      # one estimate each
+    assert np.isnan(acc[1][5:9, 5:9]).all()                       # consistency check failed
+    known = np.isfinite(acc[1])
+    assert known.sum() == acc[1].size - 16
+    np.testing.assert_allclose(acc[1][known], 0.0, atol=1e-9)
+    pairs[1] = _Pair(1, 2, 2 * pairs[1].flow, pairs[1].valid)      # twice as fast after frame 1
+    a1 = frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z)[1][2]
+    np.testing.assert_allclose(a1[known], np.linalg.norm(want) / 0.25, rtol=1e-5)

@@ -1,28 +1,30 @@
 #!/usr/bin/env python
-"""Quality run and loss ablation, as in the paper's ablation table.
+"""Loss ablation, as in the paper's ablation table, over several seeds and beside the baselines.
 
-Trains the full method and the same run with one loss removed (flow, wavelet, depth) on one scene
-at a chosen resolution and step budget, evaluates each on the test frames (PSNR both forms, SSIM,
-LPIPS when the [metrics] extra is installed, render FPS) and prints a table; writes the table as
-JSON and Markdown next to the runs.
+Trains the defaults ("full") and the same run with one loss removed (flow, wavelet, depth) on one
+scene, for each seed; evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the
+neighbour-mean and DIS-interpolation baselines, the rendered flow's EPE where the scene has gt_flow/,
+the depth error where it has depth) and prints one row per variant with the mean and spread over
+the seeds.  Writes ablation.json and ablation.md into --out.
 
     python tools/ablation.py --scene ../shared/data/endonerf/pulling_soft_tissues --downscale 2 \
-        --iterations 3000 --out runs/ablation [--variants full,no_flow,no_wavelet,no_depth]
-    python tools/ablation.py --synthetic --iterations 2000 --out runs/ablation_synth   # has depth
+        --iterations 1000 --seeds 0 1 2 --variants full,no_flow,no_wavelet --out runs/ablation
+    python tools/ablation.py --synthetic --iterations 1000 --seeds 0 1 2 --out runs/ablation_synth
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
 import sys
-import time
 from pathlib import Path
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # quality_run
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-VARIANTS = {"full": {}, "no_flow": {"use_flow": False}, "no_wavelet": {"use_wavelet": False},
-            "no_depth": {"use_depth": False}}
+VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
+            "no_depth": {"use_depth": "false"}}
 
 
 def depth_error(rt, params, scene) -> float:
@@ -41,32 +43,38 @@ def depth_error(rt, params, scene) -> float:
     return float(np.concatenate(errs).mean())
 
 
-def _previous_rows(out: Path):
-    p = out / "ablation.json"
-    return json.loads(p.read_text()) if p.is_file() else []
+def _stat(rows, get):
+    vals = [v for v in (get(r) for r in rows) if v is not None]
+    if not vals:
+        return "n/a"
+    if len(vals) == 1:
+        return f"{vals[0]:.3f}"
+    return f"{statistics.mean(vals):.3f} +- {statistics.stdev(vals):.3f}"
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene")
-    ap.add_argument("--synthetic", action="store_true", help="generate a synthetic scene with depth and masks")
-    ap.add_argument("--synthetic-size", default="320x256x32", help="WxHxFRAMES of the synthetic scene")
+    ap.add_argument("--synthetic", action="store_true", help="generate a synthetic scene with depth, masks and gt_flow")
+    ap.add_argument("--synthetic-size", default="160x128x32", help="WxHxFRAMES of the synthetic scene")
     ap.add_argument("--downscale", type=float, default=1.0)
-    ap.add_argument("--iterations", type=int, default=3000)
-    ap.add_argument("--init-points", type=int, default=30000)
+    ap.add_argument("--iterations", type=int, default=0, help="steps per run (0: the config's default)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--variants", default="full,no_flow,no_wavelet,no_depth")
     ap.add_argument("--out", required=True)
-    ap.add_argument("--device", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--evaluate-only", action="store_true",
-                    help="do not train: evaluate the newest checkpoint of each variant's run folder")
     args = ap.parse_args(argv)
+    unknown = [v for v in args.variants.split(",") if v not in VARIANTS]
+    if unknown or not (args.scene or args.synthetic):
+        ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}" if unknown
+                 else "give --scene SCENE or --synthetic")
 
-    from endowave_cl.evaluation import evaluate_run
+    from quality_run import _machine, run_one
+
     from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import upload
     from endowave_cl.runtime import get_runtime
-    from endowave_cl.train.config import load_config
-    from endowave_cl.train.trainer import Trainer
+    from endowave_cl.checkpoint import latest_checkpoint, load_checkpoint
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,51 +86,44 @@ def main(argv=None):
             make_synthetic_scene(scene_path, width=w, height=h, frames=n, seed=0, force=True)
     else:
         scene_path = Path(args.scene)
-    rt = get_runtime(args.device)
-    overrides = dict(s.split("=", 1) for s in args.set)
+    print(f"machine: {_machine()}", flush=True)
+    base = dict(s.split("=", 1) for s in args.set)
+    if args.iterations:
+        base["iterations"] = str(args.iterations)
+    rt = get_runtime()
+    eval_scene = load_scene(scene_path, downscale=args.downscale)   # with depth, whatever was trained
     rows = []
     for name in args.variants.split(","):
-        cfg = load_config(None, overrides)
-        cfg.iterations, cfg.downscale, cfg.init_points = args.iterations, args.downscale, args.init_points
-        for k, v in VARIANTS[name].items():
-            setattr(cfg, k, v)
-        scene = load_scene(scene_path, downscale=cfg.downscale, use_depth=cfg.use_depth)
-        if not scene.has_depth:
-            cfg.use_depth = False
-        print(f"== {name}: {scene.summary()}", flush=True)
-        if args.evaluate_only:
-            from endowave_cl.gaussians import upload
-            from endowave_cl.checkpoint import latest_checkpoint, load_checkpoint
-            ck = latest_checkpoint(out / name)
-            params = upload(rt, load_checkpoint(ck)["gaussians"])
-            old = [r for r in _previous_rows(out) if r["variant"] == name]
-            secs = old[0]["seconds"] if old else float("nan")
-        else:
-            t0 = time.perf_counter()
-            tr = Trainer(scene, cfg, out / name, rt, resume=False)
-            tr.train(progress=False)
-            secs = time.perf_counter() - t0
-            params = tr.params
-        eval_scene = load_scene(scene_path, downscale=cfg.downscale)   # with depth, whatever was trained
-        m = evaluate_run(rt, params, eval_scene)
-        m["depth_mae"] = depth_error(rt, params, eval_scene) if eval_scene.has_depth else None
-        m.update({"variant": name, "seconds": secs, "gaussians": len(params["means"]),
-                  "use_depth": cfg.use_depth, "use_flow": cfg.use_flow, "use_wavelet": cfg.use_wavelet})
-        rows.append(m)
-        print(json.dumps(m), flush=True)
-    lines = [f"scene {scene_path}, {scene.width}x{scene.height}, {args.iterations} steps, device {rt.name}", "",
-             "| variant | depth | flow | wavelet | PSNR | PSNR (masked) | SSIM | LPIPS | depth MAE | FPS | train s | Gaussians |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for m in rows:
-        lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
-        dm = "n/a" if m["depth_mae"] is None else f"{m['depth_mae']:.4f}"
-        lines.append(f"| {m['variant']} | {'y' if m['use_depth'] else '-'} | {'y' if m['use_flow'] else '-'} | "
-                     f"{'y' if m['use_wavelet'] else '-'} | {m['psnr']:.2f} | {m['psnr_masked']:.2f} | "
-                     f"{m['ssim']:.4f} | {lp} | {dm} | {m['fps']:.1f} | {m['seconds']:.0f} | {m['gaussians']} |")
+        for seed in args.seeds:
+            run_dir = out / name
+            m = run_one(scene_path, args.downscale, seed, {**base, **VARIANTS[name]}, 0.0, run_dir)
+            m["depth_mae"] = None
+            if eval_scene.has_depth:
+                params = upload(rt, load_checkpoint(latest_checkpoint(run_dir / f"seed{seed}"))["gaussians"])
+                m["depth_mae"] = depth_error(rt, params, eval_scene)
+            m["variant"] = name
+            rows.append(m)
+            print(json.dumps({k: v for k, v in m.items() if k != "history"}), flush=True)
+    b = rows[0].get("baselines") or {}
+    lines = [f"scene {scene_path}, {eval_scene.width}x{eval_scene.height}, "
+             f"{rows[0]['steps']} steps, seeds {args.seeds}, {_machine()}", "",
+             "| variant | PSNR | PSNR (masked) | SSIM | LPIPS | train PSNR | flow EPE px | depth MAE | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name in args.variants.split(","):
+        rs = [r for r in rows if r["variant"] == name]
+        lines.append(f"| {name} | {_stat(rs, lambda r: r['psnr'])} | {_stat(rs, lambda r: r['psnr_masked'])} | "
+                     f"{_stat(rs, lambda r: r['ssim'])} | {_stat(rs, lambda r: r['lpips'])} | "
+                     f"{_stat(rs, lambda r: r['train_psnr'])} | "
+                     f"{_stat(rs, lambda r: (r.get('flow') or {}).get('model_epe'))} | "
+                     f"{_stat(rs, lambda r: r['depth_mae'])} | {_stat(rs, lambda r: float(r['gaussians']))} |")
+    for bn, bv in b.items():
+        lines.append(f"| baseline: {bn} | {bv['psnr']:.3f} | {bv['psnr_masked']:.3f} | {bv['ssim']:.3f} | "
+                     f"{'n/a' if bv.get('lpips') is None else format(bv['lpips'], '.3f')} | | | | |")
     table = "\n".join(lines)
     print(table)
-    (out / "ablation.md").write_text(table + "\n")
-    (out / "ablation.json").write_text(json.dumps(rows, indent=1))
+    from endowave_cl.atomic import write_bytes_atomic, write_json_atomic
+    write_bytes_atomic(out / "ablation.md", (table + "\n").encode())
+    write_json_atomic(out / "ablation.json", rows)
 
 
 if __name__ == "__main__":

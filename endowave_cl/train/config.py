@@ -41,9 +41,11 @@ class TrainConfig:
     downscale: float = 1.0          # image downscale factor (2 = half size)
     init_points: int = 0            # Gaussians created by init_gaussians; 0: INIT_POINTS_PER_PIXEL per
                                     # pixel of one frame, at most half of max_gaussians
-    init_time_scale: float = 0.2    # initial temporal std (normalised time; 0: 2 training-frame
-                                    # spacings). 0.2 keeps a Gaussian visible over ~half the sequence,
-                                    # which fits better than 2 spacings (docs/ARCHITECTURE.md, Figures)
+    init_time_scale: float = 0.2    # longest initial temporal std (normalised time; 0: 2 training-
+                                    # frame spacings).  Without flow every Gaussian gets it; with
+                                    # init_velocity a Gaussian lives as long as its constant velocity
+                                    # follows the flow's curvature, from 2 spacings up to this
+                                    # (train/motion.py linear_lifetime; docs/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:

@@ -46,6 +46,15 @@ def _frame_spacing(times: np.ndarray) -> float:
     return float(np.median(np.diff(u))) if u.size > 1 else 1.0
 
 
+def _stride(point_times: np.ndarray, times: np.ndarray, n_keep: int, total: int, n_frames: int,
+            sigma) -> float:
+    """Mean spacing, in pixels (>= 1), of the kept points seen at one time: a point is seen at t
+    when its marginal weight there is above one half (|t - mu_t| < VISIBLE_WITHIN sigma_t)."""
+    sig = np.broadcast_to(np.asarray(sigma, np.float64), point_times.shape)
+    visible = np.mean([np.mean(np.abs(point_times - t) <= VISIBLE_WITHIN * sig) for t in times])
+    return max(1.0, math.sqrt(total / n_frames / max(1.0, n_keep * visible)))
+
+
 def prior_depth(frames, train_indices: Sequence[int], near: float, far: float) -> float:
     """Depth of the fronto-parallel prior (module docstring)."""
     vals = [np.asarray(frames[k].depth, np.float64) for k in train_indices if frames[k].depth is not None]
@@ -93,11 +102,6 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     chosen = np.sort(rng.choice(total, size=n_keep, replace=False)) if n_keep < total else np.arange(total)
     times = np.array([frames[k].time for k in idx], np.float64)                # [F]
     sigma_t = time_scale if time_scale > 0 else TIME_SCALE_FRAMES * _frame_spacing(times)
-    # The kept points of every frame whose time is within ~sigma_t of t overlap at time t, so the
-    # spacing of the Gaussians seen at once is that of (kept x visible fraction) points per frame.
-    point_times = np.repeat(times, counts)[chosen]                              # [n_keep]
-    visible = np.mean([np.mean(np.abs(point_times - t) <= VISIBLE_WITHIN * sigma_t) for t in times])
-    stride = max(1.0, math.sqrt(total / len(idx) / max(1.0, n_keep * visible)))  # >= one pixel
     starts = np.concatenate([[0], np.cumsum(counts)])
 
     vel_maps = {}
@@ -105,7 +109,7 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         from .motion import frame_velocities
         vel_maps = frame_velocities(frames, idx, flows, d_prior if d_prior > 0 else
                                     prior_depth(frames, idx, near, far))
-    xyz, rgb, tt, size, vel, trusted = [], [], [], [], [], []
+    xyz, rgb, tt, size, vel, trusted, accel = [], [], [], [], [], [], []
     for f_i, k in enumerate(idx):
         lo, hi = np.searchsorted(chosen, [starts[f_i], starts[f_i + 1]])
         if hi == lo:
@@ -123,21 +127,34 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         xyz.append(pw[:, :3])
         rgb.append(np.asarray(fr.image, np.float64).reshape(-1, 3)[flat])
         tt.append(np.full(depth.shape, float(fr.time)))
-        size.append(depth * 0.5 * (1.0 / cam.fx + 1.0 / cam.fy) * stride)
+        size.append(depth * 0.5 * (1.0 / cam.fx + 1.0 / cam.fy))        # one pixel; x stride below
         vm = vel_maps.get(k)
         vel.append(np.zeros((flat.size, 3)) if vm is None else vm[0].reshape(-1, 3)[flat].astype(np.float64))
         trusted.append(np.ones(flat.size, bool) if vm is None else vm[1].reshape(-1)[flat])
-    xyz, rgb, tt, size, vel, trusted = (np.concatenate(a) for a in (xyz, rgb, tt, size, vel, trusted))
+        accel.append(np.full(flat.size, np.nan) if vm is None else vm[2].reshape(-1)[flat])
+    xyz, rgb, tt, size, vel, trusted, accel = (np.concatenate(a) for a in (xyz, rgb, tt, size, vel, trusted, accel))
+    spacing = _frame_spacing(times)
+    if vel_maps:
+        # A Gaussian lives as long as its constant velocity follows the tissue (motion.linear_lifetime),
+        # between TIME_SCALE_FRAMES spacings and sigma_t; where the flow failed its consistency check
+        # (fast tools, occlusions, highlights) the motion is unknown and it lives for a frame or so,
+        # so that it cannot smear what it shows across the sequence.
+        from .motion import linear_lifetime
+        floor = min(sigma_t, TIME_SCALE_FRAMES * spacing)
+        sigma_pt = linear_lifetime(size * _stride(tt, times, n_keep, total, len(idx), sigma_t),
+                                   accel, floor, sigma_t)
+        sigma_pt = np.where(trusted, sigma_pt, min(sigma_t, UNTRUSTED_TIME_SCALE_FRAMES * spacing))
+    else:
+        sigma_pt = np.full(len(tt), sigma_t)
+    # The kept points of every frame whose lifetime covers t overlap at time t: size the Gaussians by
+    # the spacing of those seen at once.
+    size = size * _stride(tt, times, n_keep, total, len(idx), sigma_pt)
     N = xyz.shape[0]
     K = num_sh_bases(sh_degree)
     sh = np.zeros((N, nt + 1, K, 3), np.float32)
     sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0
     scales = np.empty((N, 4), np.float64)
     scales[:, :3] = np.log(np.maximum(size, 1e-12))[:, None]
-    # Where the flow failed its consistency check (fast tools, occlusions, highlights) the motion
-    # is unknown: such a Gaussian lives for a few frames only, so that it cannot smear what it
-    # shows across the sequence; training lengthens it where it is right.
-    sigma_pt = np.where(trusted, sigma_t, min(sigma_t, UNTRUSTED_TIME_SCALE_FRAMES * _frame_spacing(times)))
     scales[:, 3] = np.log(sigma_pt)
     quat_l = np.zeros((N, 4))
     quat_l[:, 0] = 1.0

@@ -149,12 +149,15 @@ def _displacement(frames, k: int, k2: int, flow: np.ndarray, valid: np.ndarray, 
 
 
 def frame_velocities(frames, train_indices, flows: Dict[int, object], depth_prior: float
-                     ) -> Dict[int, Tuple[np.ndarray, np.ndarray]]:
-    """{k: (velocity [H, W, 3], trusted [H, W] bool)}: world velocity (scene units per unit time)
-    of every training frame's pixels, the mean of the forward estimate (flow k -> next training
-    frame) and the backward one (the previous pair's backward flow k -> previous frame) where each
-    is trusted, filled in smoothly where neither is (``_fill``); ``trusted`` marks the pixels where
-    at least one estimate passed its consistency check.  Frames with no flow pair get no entry."""
+                     ) -> Dict[int, Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """{k: (velocity [H, W, 3], trusted [H, W] bool, acceleration [H, W])}: world velocity (scene
+    units per unit time) of every training frame's pixels, the mean of the forward estimate (flow
+    k -> next training frame) and the backward one (the previous pair's backward flow k -> previous
+    frame) where each is trusted, filled in smoothly where neither is (``_fill``); ``trusted`` marks
+    the pixels where at least one estimate passed its consistency check; ``acceleration`` is the
+    change between the two estimates per unit time (scene units per unit time squared) where both
+    are trusted, NaN elsewhere (the motion's curvature is unknown there).  Frames with no flow pair
+    get no entry."""
     by_dst = {p.dst: p for p in flows.values()}
     out = {}
     for k in train_indices:
@@ -163,17 +166,36 @@ def frame_velocities(frames, train_indices, flows: Dict[int, object], depth_prio
         depth = (np.full((H, W), depth_prior) if fr.depth is None else np.asarray(fr.depth, np.float64))
         acc = np.zeros((H, W, 3))
         wsum = np.zeros((H, W))
+        est = []                    # (velocity, trusted, time to the other frame) per direction
         if k in flows:
             p = flows[k]
             d, ok = _displacement(frames, k, p.dst, p.flow, p.valid, depth, depth_prior)
-            acc += np.where(ok[..., None], d, 0.0)
-            wsum += ok
+            est.append((d, ok, abs(float(frames[p.dst].time - fr.time))))
         if k in by_dst:
             p = by_dst[k]
             d, ok = _displacement(frames, k, p.src, p.flow_bw, p.valid_bw, depth, depth_prior)
+            est.append((d, ok, abs(float(frames[p.src].time - fr.time))))
+        for d, ok, _ in est:
             acc += np.where(ok[..., None], d, 0.0)
             wsum += ok
         if not wsum.any():
             continue
-        out[k] = (_fill(acc / np.maximum(wsum, 1)[..., None], (wsum > 0).astype(np.float32)), wsum > 0)
+        accel = np.full((H, W), np.nan)
+        if len(est) == 2:
+            (d0, ok0, dt0), (d1, ok1, dt1) = est
+            both = ok0 & ok1
+            # forward estimate ~ v + a dt0 / 2, backward ~ v - a dt1 / 2 (secant slopes)
+            a = np.linalg.norm(d0 - d1, axis=-1) / max(0.5 * (dt0 + dt1), 1e-12)
+            accel[both] = a[both]
+        out[k] = (_fill(acc / np.maximum(wsum, 1)[..., None], (wsum > 0).astype(np.float32)), wsum > 0, accel)
     return out
+
+
+def linear_lifetime(size: np.ndarray, accel: np.ndarray, floor: float, cap: float) -> np.ndarray:
+    """Temporal std [N] for Gaussians of spatial std ``size`` [N] moving with acceleration
+    ``accel`` [N] (NaN: unknown): how long a constant velocity stays within one spatial std of the
+    true path, 0.5 |a| dt^2 <= size, clipped to [floor, cap]; unknown curvature gets the floor."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.sqrt(2.0 * np.asarray(size, np.float64) / np.asarray(accel, np.float64))
+    t = np.where(np.isfinite(t), t, np.where(np.isnan(accel), floor, cap))
+    return np.clip(t, floor, max(floor, cap))
