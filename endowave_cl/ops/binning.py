@@ -60,12 +60,12 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     q = rt.queue
     if n == 0:
         return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32))
-    counts = cla.empty(q, n, np.int32)  # [N]
+    counts = cla.empty(q, n, np.int32, allocator=rt.pool())  # [N]
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, np.int32(n), counts.data)
     offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
     m = int(offsets[n:n + 1].get()[0])
-    keys = cla.empty(q, m, np.uint64)    # [M]
-    values = cla.empty(q, m, np.int32)   # [M]
+    keys = cla.empty(q, m, np.uint64, allocator=rt.pool())    # [M]
+    values = cla.empty(q, m, np.int32, allocator=rt.pool())   # [M]
     if m > 0:
         _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
                 np.int32(n), np.int32(tiles_x), keys.data, values.data)
@@ -75,7 +75,7 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
 def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
     """[n_tiles, 2] int32 (start, end) of each tile's run in sorted_keys [M]; (0, 0) if empty."""
     q = rt.queue
-    ranges = cla.zeros(q, (int(n_tiles), 2), np.int32)
+    ranges = cla.zeros(q, (int(n_tiles), 2), np.int32, allocator=rt.pool())
     m = int(sorted_keys.size)
     if m > 0 and n_tiles > 0:
         _launch(rt, "tile_ranges", m, sorted_keys.data, np.int32(m), np.int32(n_tiles), ranges.data)

@@ -261,9 +261,11 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     width, height = int(width), int(height)
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     C = int(features.shape[1])
-    q = rt.queue
-    res = RasterOut(cla.empty(q, (height, width, C), np.float32), cla.empty(q, (height, width), np.float32),
-                    cla.empty(q, (height, width), np.float32), cla.empty(q, (height, width), np.int32))
+    q, al = rt.queue, rt.pool()
+    res = RasterOut(cla.empty(q, (height, width, C), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.int32, allocator=al))
     if width == 0 or height == 0:
         return res
     tiles_x, _, gsize, lsize = _grid(width, height)
@@ -304,7 +306,7 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
     if N == 0:
         return None
     rec4 = 3 + (C + 3) // 4
-    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32)
+    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32, allocator=rt.pool())
     kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
     wg = 64
     rt.launch_1d(kp, N, wg, means2d.data, conic.data, opac.data, features.data,
@@ -330,18 +332,21 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     N, C = (int(s) for s in features.shape)
     assert v_out.shape == (height, width, C) and v_alpha.shape == (height, width)
-    q = rt.queue
-    grads = {"v_means2d": cla.zeros(q, (N, 2), np.float32), "v_conic": cla.zeros(q, (N, 3), np.float32),
-             "v_opac": cla.zeros(q, (N,), np.float32), "v_features": cla.zeros(q, (N, C), np.float32)}
+    q, al = rt.queue, rt.pool()
+    det = deterministic is not None
+    M = int(sorted_values.shape[0])
+    # the deterministic mode's gather writes every row (empty suffices) unless there is nothing
+    # to gather; the atomic mode accumulates into zeros
+    make = cla.empty if det and M > 0 and width > 0 and height > 0 else cla.zeros
+    grads = {"v_means2d": make(q, (N, 2), np.float32, allocator=al), "v_conic": make(q, (N, 3), np.float32, allocator=al),
+             "v_opac": make(q, (N,), np.float32, allocator=al), "v_features": make(q, (N, C), np.float32, allocator=al)}
     if N == 0 or width == 0 or height == 0:
         return grads
     tiles_x, _, gsize, lsize = _grid(width, height)
-    det = deterministic is not None
-    M = int(sorted_values.shape[0])
     if det and M == 0:
         return grads
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
-    v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None   # [M, NV] in binning order
+    v_entry = cla.zeros(q, (M, 6 + C), np.float32, allocator=al) if det else None   # [M, NV] in binning order
     rect, offsets = deterministic if det else (None, None)
     if det:
         assert rect.shape == (N, 4) and rect.dtype == np.int32, (rect.shape, rect.dtype)

@@ -81,11 +81,12 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     items = cfg.items_for(n, rt.compute_units)
     n_blocks = -(-n // (cfg.wg * items))
     radix = 1 << cfg.radix_bits
-    hist = cla.empty(q, radix * n_blocks, np.int32)     # [radix, n_blocks]
-    offsets = cla.empty(q, radix * n_blocks, np.int32)  # [radix, n_blocks]
-    bufs = [(cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32))]
+    al = rt.pool()
+    hist = cla.empty(q, radix * n_blocks, np.int32, allocator=al)     # [radix, n_blocks]
+    offsets = cla.empty(q, radix * n_blocks, np.int32, allocator=al)  # [radix, n_blocks]
+    bufs = [(cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al))]
     if passes > 1:
-        bufs.append((cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32)))
+        bufs.append((cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al)))
 
     k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
     k_scatter = rt.kernel("sort.cl", "radix_scatter", cfg.options())
