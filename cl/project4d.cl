@@ -11,12 +11,7 @@ __kernel void project4d(
     __global const float *opacity,   /* [N] logit */
     __global const float *sh,        /* [N, NT+1, SH_K, 3] */
     __global const float *phase,     /* [N, NT+1] */
-    __global const float *cam_buf,   /* [CAM_SIZE] */
-    const float t,
-    const float t_flow,
-    const int has_flow,
-    const int tiles_x,
-    const int tiles_y,
+    P4_VIEW_ARGS,
     __global float *means2d,         /* [N, 2] */
     __global float *conic,           /* [N, 3] */
     __global float *depth,           /* [N] */

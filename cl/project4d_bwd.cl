@@ -37,12 +37,7 @@ __kernel void project4d_bwd(
     __global const float *opacity,   /* [N] */
     __global const float *color_inner, /* [N, NT+1, 3] forward output: sum_k c[n, k, rgb] Y_k */
     __global const float *phase,     /* [N, NT+1] */
-    __global const float *cam_buf,   /* [CAM_SIZE] */
-    const float t,
-    const float t_flow,
-    const int has_flow,
-    const int tiles_x,
-    const int tiles_y,
+    P4_VIEW_ARGS,
     __global const int *radius,      /* [N] forward output: 0 = culled */
     __global const float *v_means2d, /* [N, 2] */
     __global const float *v_conic,   /* [N, 3] */

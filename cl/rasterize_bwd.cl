@@ -70,20 +70,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    __global const float *conic,      /* [N, 3] */
                    __global const float *opac,       /* [N] */
                    __global const float *features,   /* [N, C] */
-                   __global const int *sorted_values,/* [M] */
-                   __global const int2 *tile_ranges, /* [n_tiles] */
-                   const int width, const int height, const int tiles_x,
-                   __global const float *t_final,    /* [H, W] */
-                   __global const int *last_in,      /* [H, W] */
-                   __global const float *v_out,      /* [H, W, C] */
-                   __global const float *v_alpha,    /* [H, W] */
-                   volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
-                   volatile __global float *v_conic,    /* [N, 3] */
-                   volatile __global float *v_opac,     /* [N] */
-                   volatile __global float *v_features, /* [N, C] */
-                   __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
-                   __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
-                   __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
+                   RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -97,17 +84,15 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local int l_n_act;
     __local int l_max_last;
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * TILE + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix = get_global_id(0), iy = get_global_id(1);
+    const TileWork w = tile_work(1, 1, tiles_x);
+    const int lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix = w.x0, iy = w.y0;
     const bool inside = ix < width && iy < height;
-    const float px = (float)ix + 0.5f, py = (float)iy + 0.5f;
+    const float px = w.px0, py = w.py0;
     const int p = iy * width + ix;
-    const int my_sub = (ly / SUB) * SUBS_PER_ROW + lx / SUB;
+    const int my_sub = (w.ly / SUB) * SUBS_PER_ROW + w.lx / SUB;
 
-    const int2 range = tile_ranges[tile];
+    const int2 range = tile_ranges[w.tile];
 
     float T = 1.0f, T_fin = 1.0f, va = 0.0f;
     float vo[C], S[C];
@@ -121,11 +106,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
         for (int c = 0; c < C; c++) vo[c] = v_out[p * C + c];
     }
 
-    if (lid == 0) l_max_last = 0;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (last > 0) atomic_max(&l_max_last, last);
-    barrier(CLK_LOCAL_MEM_FENCE);
-    const int max_last = l_max_last;                          /* uniform */
+    const int max_last = group_max_last(last, lid, &l_max_last);   /* uniform */
     const int n_batches = (max_last + BATCH - 1) / BATCH;
 
     for (int b = n_batches - 1; b >= 0; b--) {
@@ -218,14 +199,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
                 if (u >= 0) v_entry[u * NV + lid] = sum;   /* this group's alone */
 #else
-                if (sum != 0.0f) {
-                    const int g = l_gid[j];
-                    volatile __global float *dst =
-                        lid < 2 ? v_means2d + 2 * g + lid :
-                        lid < 5 ? v_conic + 3 * g + (lid - 2) :
-                        lid == 5 ? v_opac + g : v_features + g * C + (lid - 6);
-                    atomic_add_global_f(dst, sum);
-                }
+                add_gradient(lid, l_gid[j], sum, v_means2d, v_conic, v_opac, v_features);
 #endif
             }
             /* No barrier needed here: the next iteration's step (1) rewrites l_pix, which step (3)

@@ -41,20 +41,7 @@
 
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
-                       __global const int *sorted_values,/* [M] */
-                       __global const int2 *tile_ranges, /* [n_tiles] */
-                       const int width, const int height, const int tiles_x,
-                       __global const float *t_final,    /* [H, W] */
-                       __global const int *last_in,      /* [H, W] */
-                       __global const float *v_out,      /* [H, W, C] */
-                       __global const float *v_alpha,    /* [H, W] */
-                       volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
-                       volatile __global float *v_conic,    /* [N, 3] */
-                       volatile __global float *v_opac,     /* [N] */
-                       volatile __global float *v_features, /* [N, C] */
-                       __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
-                       __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
-                       __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
+                       RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -67,13 +54,11 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local uint l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * BX + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix0 = tx * TILE + lx * BW, iy0 = ty * TILE + ly * BH;   /* first pixel of the block */
-    const float px0 = (float)ix0 + 0.5f, px1 = px0 + (float)(BW - 1);   /* block's pixel centres */
-    const float py0 = (float)iy0 + 0.5f, py1 = py0 + (float)(BH - 1);
+    const TileWork w = tile_work(BW, BH, tiles_x);
+    const int lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix0 = w.x0, iy0 = w.y0;                                  /* first pixel of the block */
+    const float px0 = w.px0, px1 = px0 + (float)(BW - 1);              /* block's pixel centres */
+    const float py0 = w.py0, py1 = py0 + (float)(BH - 1);
 
     /* per-lane inputs; lanes outside the image: T_final 1, last 0, no cotangent */
     float tf_l[VW], va_l[VW], vo_l[C * VW];
@@ -98,12 +83,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     for (int c = 0; c < C; c++) { vo[c] = vloadF(c, vo_l); S[c] = (floatV)(0.0f); }
     floatV T = T_fin;
 
-    const int2 range = tile_ranges[tile];
-    if (lid == 0) l_max_last = 0;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (max_last_mine > 0) atomic_max(&l_max_last, max_last_mine);
-    barrier(CLK_LOCAL_MEM_FENCE);
-    const int max_last = l_max_last;                          /* uniform */
+    const int2 range = tile_ranges[w.tile];
+    const int max_last = group_max_last(max_last_mine, lid, &l_max_last);   /* uniform */
     const int n_batches = (max_last + BATCH - 1) / BATCH;
 
     for (int b = n_batches - 1; b >= 0; b--) {
@@ -197,15 +178,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             if (u >= 0)
                 for (int k = 0; k < NV; k++) v_entry[u * NV + k] = tot[k];
 #else
-            const int g = l_gid[j];
-            for (int k = 0; k < NV; k++) {
-                if (tot[k] == 0.0f) continue;
-                volatile __global float *dst =
-                    k < 2 ? v_means2d + 2 * g + k :
-                    k < 5 ? v_conic + 3 * g + (k - 2) :
-                    k == 5 ? v_opac + g : v_features + g * C + (k - 6);
-                atomic_add_global_f(dst, tot[k]);
-            }
+            for (int k = 0; k < NV; k++)
+                add_gradient(k, l_gid[j], tot[k], v_means2d, v_conic, v_opac, v_features);
 #endif
         }
         barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays, l_part4, l_wrote */

@@ -1,11 +1,11 @@
 /* exp(x) for x <= 0 on OpenCL vectors (floatVW, VW a build option: 2, 4, 8 or 16), in plain
  * arithmetic so that it stays inline and SIMD on CPU drivers (PoCL calls builtin exp out of line).
- * Lane for lane the same operations, in the same order, as exp_nonpos in rasterize.cl, so both
- * give bit-identical results: Cody-Waite reduction x = k ln2 + r, |r| <= ln2 / 2, degree-7 Taylor
- * polynomial of e^r (truncation < 1e-8 relative), scaling by 2^k in the exponent bits; about 1 ulp.
+ * Lane for lane the same operations, in the same order, as exp_nonpos (both are written from
+ * EXP_NONPOS_BODY in raster_common.h), so both give bit-identical results.
  * OpenCL C 1.2. */
 #ifndef ENDOWAVE_VEXP_H
 #define ENDOWAVE_VEXP_H
+#include "raster_common.h"   /* EXP_NONPOS_BODY */
 
 #ifndef VW
 #define VW 8
@@ -100,25 +100,9 @@ inline float4 vhsum4(floatV a, floatV b, floatV c, floatV d) {
 #define VALL(m) (vred_and(m) != 0)    /* every lane true */
 #define VANY(m) (vred_or(m) != 0)     /* some lane true */
 
-#define VEXP_FLOOR (-80.0f)
-#define VEXP_LN2_HI 0.693145751953125f           /* ln 2 split so that k * LN2_HI is exact */
-#define VEXP_LN2_LO 1.428606765330187045e-06f
-#define VEXP_LOG2E 1.44269504088896341f
-
+/* exp(x <= 0) on floatVW: the polynomial of raster_common.h, lane for lane (== exp_nonpos) */
 inline floatV vexp_nonpos(floatV x) {
-    x = x < (floatV)(VEXP_FLOOR) ? (floatV)(VEXP_FLOOR) : x;
-    const intV k = convert_intV(x * VEXP_LOG2E - 0.5f);  /* round toward zero = to nearest, x <= 0 */
-    const floatV kf = convert_floatV(k);
-    const floatV r = (x - kf * VEXP_LN2_HI) - kf * VEXP_LN2_LO;
-    floatV p = (floatV)(1.0f / 5040.0f);
-    p = p * r + 1.0f / 720.0f;
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
-    p = p * r + 1.0f;
-    p = p * r + 1.0f;
-    return as_floatV(as_intV(p) + (k << 23));
+    EXP_NONPOS_BODY(floatV, intV, convert_intV, convert_floatV, as_floatV, as_intV, x)
 }
 
 #endif
