@@ -79,8 +79,11 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     const floatV T_fin = vloadF(0, tf_l);
     const intV last = vloadI(0, last_l);
     const floatV va_tf = vloadF(0, va_l) * T_fin;    /* v_alpha T_final */
-    floatV vo[C], S[C];
-    for (int c = 0; c < C; c++) { vo[c] = vloadF(c, vo_l); S[c] = (floatV)(0.0f); }
+    floatV vo[C];
+    for (int c = 0; c < C; c++) vo[c] = vloadF(c, vo_l);
+    /* D = sum_c vo_c S_c, S_c the colour composited behind the current entry: the adjoint needs
+     * the S_c only in this combination, so one running value replaces the C of them */
+    floatV D = (floatV)(0.0f);
     floatV T = T_fin;
 
     const int2 range = tile_ranges[w.tile];
@@ -102,8 +105,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
 
         {   /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
-            floatV s_cur[C];
-            for (int c = 0; c < C; c++) s_cur[c] = S[c];
+            floatV d_cur = D;
             /* the batch entries whose cull box reaches this block, in order (branch-free) */
             uchar hits[BATCH];
             int n_hits = 0;
@@ -133,13 +135,14 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                             const floatV inv_om = 1.0f / (1.0f - alpha);
                             t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
                             const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
-                            floatV v_al = va_tf * inv_om;              /* d L / d alpha_j */
+                            /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
+                            floatV dot = (floatV)(0.0f);
                             for (int c = 0; c < C; c++) {
-                                const float f = l_feat[j * C + c];
-                                v_al += vo[c] * (f * t_cur - s_cur[c] * inv_om);
-                                s_cur[c] += f * w;
+                                dot += vo[c] * l_feat[j * C + c];
                                 term[6 + c] = vo[c] * w;
                             }
+                            const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
+                            d_cur += dot * w;
                             for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
                             const intV grad = use & (raw <= ALPHA_MAX);
@@ -159,7 +162,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             }
             l_wrote[lid] = wrote;
             T = t_cur;
-            for (int c = 0; c < C; c++) S[c] = s_cur[c];
+            D = d_cur;
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 

@@ -77,24 +77,27 @@ inline int vred_or(intV m) {
     return m2.x | m2.y;
 #endif
 }
-/* The lane sums of four vectors, (sum a, sum b, sum c, sum d), in one fixed order: each vector is
- * halved to 4 lanes, then adjacent pairs are added across the four at once (two shuffled adds
- * instead of the 3 x 4 of four separate reductions). */
+/* The lane sums of four vectors, (sum a, sum b, sum c, sum d), in one fixed order: two vectors are
+ * folded into one at full width (lanes 0..W/2-1 the halves of one, W/2.. of the other), so each
+ * step is one add of two shuffles instead of separate reductions per vector. */
 inline float4 vhsum4(floatV a, floatV b, floatV c, floatV d) {
 #if VW == 2
     return (float4)(a.x + a.y, b.x + b.y, c.x + c.y, d.x + d.y);
-#else
-#if VW == 16
-    const float8 a8 = a.lo + a.hi, b8 = b.lo + b.hi, c8 = c.lo + c.hi, d8 = d.lo + d.hi;
-    const float4 a4 = a8.lo + a8.hi, b4 = b8.lo + b8.hi, c4 = c8.lo + c8.hi, d4 = d8.lo + d8.hi;
-#elif VW == 8
-    const float4 a4 = a.lo + a.hi, b4 = b.lo + b.hi, c4 = c.lo + c.hi, d4 = d.lo + d.hi;
-#else
-    const float4 a4 = a, b4 = b, c4 = c, d4 = d;
-#endif
-    const float8 ab = (float8)(a4, b4), cd = (float8)(c4, d4);
+#elif VW == 4
+    const float8 ab = (float8)(a, b), cd = (float8)(c, d);
     const float8 p = (float8)(ab.even + ab.odd, cd.even + cd.odd);   /* 2 partial sums per vector */
     return p.even + p.odd;
+#elif VW == 8
+    const float8 ab = (float8)(a.lo, b.lo) + (float8)(a.hi, b.hi);   /* a a a a b b b b */
+    const float8 cd = (float8)(c.lo, d.lo) + (float8)(c.hi, d.hi);
+    const float8 p = (float8)(ab.even, cd.even) + (float8)(ab.odd, cd.odd);   /* aa bb cc dd */
+    return p.even + p.odd;
+#else   /* 16 */
+    const float16 ab = (float16)(a.lo, b.lo) + (float16)(a.hi, b.hi);   /* 8 partials of a, 8 of b */
+    const float16 cd = (float16)(c.lo, d.lo) + (float16)(c.hi, d.hi);
+    const float16 p = (float16)(ab.even, cd.even) + (float16)(ab.odd, cd.odd);   /* 4 of a, b, c, d */
+    const float8 q = p.even + p.odd;                                    /* 2 of each */
+    return q.even + q.odd;
 #endif
 }
 #define VALL(m) (vred_and(m) != 0)    /* every lane true */
