@@ -108,9 +108,7 @@ inline void add_gradient(int k, int g, float v, volatile __global float *v_means
     volatile __global float *v_conic,   /* [N, 3] */                                      \
     volatile __global float *v_opac,    /* [N] */                                         \
     volatile __global float *v_features,/* [N, C] */                                      \
-    __global float *v_entry,            /* [M, NV] per-entry terms (DETERMINISTIC only) */ \
-    __global const int4 *rect,          /* [N] binning rects (DETERMINISTIC only) */      \
-    __global const int *offsets         /* [N + 1] binning offsets (DETERMINISTIC only) */
+    __global float *v_entry             /* [M, NV] per sorted entry (DETERMINISTIC only) */
 
 /* The local arrays of a batch of n staged Gaussians (both forward kernels). */
 #define RASTER_BATCH_LOCALS(n)                                                             \

@@ -26,11 +26,12 @@
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
  *
- * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for the entry of
- * Gaussian g in this tile to v_entry[u], u = binned_slot(...) its position in the unsorted binning
- * order (entries are unique to a tile, so no atomics; every u is written at most once), and
- * rasterize_bwd_gather sums each Gaussian's slots, which are contiguous and in tile order:
- * bit-identical results from run to run.
+ * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for sorted entry k
+ * (Gaussian g in this tile) to v_entry[k] (entries are unique to a tile, so no atomics; the
+ * stores of a tile are contiguous), and rasterize_bwd_gather sums each Gaussian's entries in its
+ * binning order (its rect's tiles row-major: slot u -> entry entry_of[u], from
+ * rasterize_bwd_entry_of): bit-identical results from run to run.  (Storing at the binning slot
+ * instead scattered 4 (6 + C) bytes per entry over the whole array: a cache miss on each store.)
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
@@ -196,8 +197,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 float sum = 0.0f;
                 for (int s = 0; s < N_SUB; s++) sum += l_part[lid * N_SUB + s];
 #if DETERMINISTIC
-                const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
-                if (u >= 0) v_entry[u * NV + lid] = sum;   /* this group's alone */
+                v_entry[(base + j) * NV + lid] = sum;   /* sorted entry base + j: this group's alone */
 #else
                 add_gradient(lid, l_gid[j], sum, v_means2d, v_conic, v_opac, v_features);
 #endif
@@ -209,11 +209,32 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     }
 }
 
-/* Deterministic mode, second pass: one work-item per Gaussian g sums its per-entry terms, which the
- * backward pass stored at g's binning slots offsets[g] .. offsets[g + 1] (its rect's tiles
- * row-major, see binned_slot in common.h), in that order, and writes its gradients.  v_entry is zero
- * where the backward pass had nothing for an entry. */
-__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in binning order */
+/* Deterministic mode, before the gather: entry_of[u] = k for the sorted entry k whose binning slot
+ * (binned_slot in common.h) is u; entry_of must hold -1 on entry (slots with no sorted entry keep
+ * it).  One work-item per tile walks its sorted entries. */
+__kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] */
+                                     __global const int2 *tile_ranges,  /* [n_tiles] */
+                                     const int n_tiles, const int tiles_x,
+                                     __global const int4 *rect,         /* [N] binning rects */
+                                     __global const int *offsets,       /* [N + 1] binning offsets */
+                                     __global int *entry_of)            /* [M] */
+{
+    const int t = get_global_id(0);
+    if (t >= n_tiles) return;
+    const int tx = t % tiles_x, ty = t / tiles_x;
+    const int2 range = tile_ranges[t];
+    for (int k = range.x; k < range.y; k++) {
+        const int u = binned_slot(rect, offsets, sorted_values[k], tx, ty);
+        if (u >= 0) entry_of[u] = k;
+    }
+}
+
+/* Deterministic mode, second pass: one work-item per Gaussian g sums the per-entry terms the
+ * backward pass stored for its entries (v_entry in sorted order), taken in g's binning order
+ * offsets[g] .. offsets[g + 1] (its rect's tiles row-major, entry_of[u] the sorted entry of slot
+ * u), and writes its gradients.  v_entry is zero where the backward pass had nothing for an entry. */
+__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in sorted order */
+                                   __global const int *entry_of,     /* [M] sorted entry of each slot */
                                    __global const int *offsets,      /* [N + 1] */
                                    const int n,
                                    __global float *v_means2d,        /* [N, 2] */
@@ -226,8 +247,11 @@ __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] i
     float sum[NV];
     for (int k = 0; k < NV; k++) sum[k] = 0.0f;
     const int end = offsets[g + 1];
-    for (int u = offsets[g]; u < end; u++)
-        for (int k = 0; k < NV; k++) sum[k] += v_entry[u * NV + k];
+    for (int u = offsets[g]; u < end; u++) {
+        const int e = entry_of[u];
+        if (e < 0) continue;
+        for (int k = 0; k < NV; k++) sum[k] += v_entry[e * NV + k];
+    }
     v_means2d[2 * g] = sum[0];
     v_means2d[2 * g + 1] = sum[1];
     for (int k = 0; k < 3; k++) v_conic[3 * g + k] = sum[2 + k];

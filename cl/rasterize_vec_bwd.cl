@@ -16,8 +16,8 @@
  * of its mask l_wrote[work-item].  After the batch, one work-item per entry adds up the slots that
  * were written, in work-item order (float4 adds; no slot needs zeroing), and adds the totals to
  * the global gradients with atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1,
- * stores them to the entry's binning slot of v_entry (binned_slot in common.h, looked up once per
- * entry while staging) for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
+ * stores them to v_entry at the entry's sorted position for rasterize_bwd_gather (in
+ * rasterize_bwd.cl), which sums them per Gaussian in binning order: bit-identical between runs.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
  * the largest that fits local memory, since l_part4 holds BATCH * N_WI * NSV float4), -DDETERMINISTIC.
@@ -47,7 +47,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
     __local float l_feat[BATCH * C];
     __local int l_gid[BATCH];
-    __local int l_slot[BATCH];                   /* binned_slot of each entry (DETERMINISTIC) */
     __local float l_thr[BATCH];
     __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
@@ -96,9 +95,6 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         for (int j = lid; j < count; j += N_WI) {
             const int g = sorted_values[base + j];
             l_gid[j] = g;
-#if DETERMINISTIC
-            l_slot[j] = binned_slot(rect, offsets, g, tx, ty);
-#endif
             stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
@@ -177,9 +173,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                     for (int v = 0; v < NSV; v++) sum[v] += src[i * NSV + v];
             const float *tot = (const float *)sum;   /* [4 * NSV], the NV values first */
 #if DETERMINISTIC
-            const int u = l_slot[j];                  /* this group's alone */
-            if (u >= 0)
-                for (int k = 0; k < NV; k++) v_entry[u * NV + k] = tot[k];
+            for (int k = 0; k < NV; k++) v_entry[(base + j) * NV + k] = tot[k];   /* sorted entry: ours alone */
 #else
             for (int k = 0; k < NV; k++)
                 add_gradient(k, l_gid[j], tot[k], v_means2d, v_conic, v_opac, v_features);

@@ -185,7 +185,7 @@ def main(argv=None):
     sizes = {"N": args.n, "visible": int((out.proj.radius.get() > 0).sum()), "M": out.n_isect,
              "pixels": args.width * args.height, "C": C, "tiles": int(out.tile_ranges.shape[0]),
              "sh_floats": int(np.prod(params["sh"].shape[1:])), "passes": launches.get("radix_scatter", 0),
-             "det": not rt.is_gpu}
+             "det": not rt.caps.simt}
     sizes["lanes_fwd"], sizes["lanes_bwd"] = lane_evaluations(out.raster, out.binned, out.proj,
                                                               args.width, args.height, C)
     rows = []

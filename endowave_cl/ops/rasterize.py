@@ -77,7 +77,7 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     """The variant that runs on rt for C feature channels.
 
     $ENDOWAVE_RASTER_VARIANT / $ENDOWAVE_RASTER_VW force a variant / lane count; else GPUs run the
-    scalar kernels and CPU devices the vector ones at the first of VEC_WIDTHS whose probe passes
+    scalar kernels (devices that report a SIMT width, DeviceCaps) and the others the vector ones at the first of VEC_WIDTHS whose probe passes
     (the Oclgrind simulator: VEC_WIDTH, not probed), then the scalar kernels.  A forced vector
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
@@ -107,8 +107,8 @@ def explain_choice(rt, C: int = 6):
     forced_v, forced_w, _ = _forced()
     if forced_v == "scalar":
         return RasterChoice("scalar"), [f"forced by {ENV_VARIANT}"], []
-    if forced_v is None and forced_w is None and rt.is_gpu:
-        return RasterChoice("scalar"), ["GPU"], []
+    if forced_v is None and forced_w is None and simt_device(rt):
+        return RasterChoice("scalar"), [f"SIMT width {rt.caps.simt_width}"], []
     forced = bool(forced_v or forced_w)
     widths = (forced_w,) if forced_w else (VEC_WIDTH,) + tuple(w for w in VEC_WIDTHS if w < VEC_WIDTH)
     notes, failed = [], []
@@ -138,6 +138,14 @@ def explain_choice(rt, C: int = 6):
         failed.append(f"{w} lanes: {v.reason}")
         notes.append(failed[-1])
     return (None if forced else RasterChoice("scalar")), notes, failed
+
+
+def simt_device(rt) -> bool:
+    """Whether rt's device runs work-items in lock-step hardware SIMD (DeviceCaps.simt: a warp,
+    wavefront or sub-group width reported by the driver): the one-pixel-per-work-item kernels suit
+    it; devices that report none (CPU drivers) run the explicit-SIMD vector kernels."""
+    caps = getattr(rt, "caps", None)
+    return bool(caps.simt) if caps is not None else bool(getattr(rt, "is_gpu", False))
 
 
 def raster_variant(rt, C: int = 6) -> str:
@@ -323,8 +331,9 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     deterministic: None (default: per-group CAS adds, last-bit differences between runs) or a pair
     (rect [N,4] int32, offsets [N+1] int32), the rects and binning offsets the sorted list was built
     from (ops.binning.bin_gaussians): then the gradients are bit-identical from run to run
-    (per-entry terms stored at the entries' binning slots, summed per Gaussian in tile order;
-    needs M * (6 + C) floats of scratch).
+    (per-entry terms stored in sorted order, summed per Gaussian in its binning (tile) order through
+    the slot -> entry map rasterize_bwd_entry_of builds from rect and offsets; needs M * (7 + C)
+    words of scratch).
     choice: the variant to run, as in ``rasterize``.
     """
     import pyopencl.array as cla
@@ -364,7 +373,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
                   np.int32(width), np.int32(height), np.int32(tiles_x),
                   raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
                   grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+                  _buf(rt, v_entry))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
@@ -372,11 +381,19 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
                   tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
                   raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
                   grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+                  _buf(rt, v_entry))
     if det:
+        # the sorted entry of each binning slot, then per Gaussian the sum of its entries' terms in
+        # binning order (the same order as summing at the slots: the same bits)
+        entry_of = cla.empty(q, (M,), np.int32, allocator=al)
+        entry_of.fill(np.int32(-1))
+        n_tiles = int(tile_ranges.shape[0])
+        ke = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_entry_of", opts)
+        rt.launch_1d(ke, n_tiles, 64, _buf(rt, sorted_values), tile_ranges.data, np.int32(n_tiles),
+                     np.int32(tiles_x), rect.data, offsets.data, entry_of.data)
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        rt.launch_1d(kg, N, wg, v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
+        rt.launch_1d(kg, N, wg, v_entry.data, entry_of.data, offsets.data, np.int32(N), grads["v_means2d"].data,
                      grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 

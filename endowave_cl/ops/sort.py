@@ -7,7 +7,7 @@ The result equals numpy's ``argsort(kind='stable')`` order exactly.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -52,7 +52,16 @@ GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_
 
 
 def default_config(rt) -> SortConfig:
-    return GPU_CONFIG if rt.is_gpu else CPU_CONFIG
+    """CPU_CONFIG on devices without a reported SIMT width (DeviceCaps); else GPU_CONFIG with its
+    work-group size cut to what the device allows and its [digit, work-item] table to half the
+    local memory."""
+    caps = getattr(rt, "caps", None)
+    if caps is None or not caps.simt:
+        return CPU_CONFIG
+    wg = GPU_CONFIG.wg
+    while wg > 1 and (wg > caps.max_work_group_size or 4 * (1 << GPU_CONFIG.radix_bits) * wg > caps.local_mem_size // 2):
+        wg //= 2
+    return GPU_CONFIG if wg == GPU_CONFIG.wg else replace(GPU_CONFIG, wg=wg)
 
 
 def sort_passes(num_bits: int, radix_bits: int) -> int:
