@@ -84,7 +84,8 @@ def main(argv=None):
     t, t2 = 0.5, 0.55
 
     print(f"device: {rt.describe()}")
-    print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} cores")
+    print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load average "
+          f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)")
     print(f"sizes: N={args.n} Gaussians, {args.width}x{args.height}, C=6 channels, median of {args.runs} runs "
           f"after {args.warmup} warm-up")
 
@@ -130,7 +131,8 @@ def main(argv=None):
     for k in ("rasterize_bwd", "project_bwd", "backward"):
         print(f"  backward {k:13s} {statistics.median(bwd_stage[k][args.warmup:]):8.2f} ms")
     b = statistics.median(bwd_stage["backward"][args.warmup:])
-    print(f"forward + backward: {fwd_ms + b:.2f} ms; backward / forward = {b / fwd_ms:.2f}")
+    print(f"forward + backward: {fwd_ms + b:.2f} ms; backward / forward = {b / fwd_ms:.2f}; load average now "
+          f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
     if not args.no_reference:
         import torch

@@ -42,7 +42,7 @@ def stage_of(name: str) -> str:
         return "project"
     if name.startswith(("bin_", "scan_", "radix_", "tile_ranges")):
         return "bin_sort"
-    if name.endswith("_bwd") or name.endswith("bwd_gather"):
+    if "_bwd" in name:
         return "rasterize_bwd"
     return "rasterize"
 
@@ -108,7 +108,8 @@ def estimates(name, s):
         "rasterize_vec_bwd": (M * (4 + rec + (16 + 8 if s["det"] else 0)) + P * 4 * (C + 3)
                               + (M * NV * 4 if s["det"] else N * NV * 4),
                               (s["lanes_bwd"] or 0) * BWD_LANE_FLOPS),
-        "rasterize_bwd_gather": (M * NV * 4 + N * 4 + N * NV * 4, M * NV),
+        "rasterize_bwd_gather": (M * NV * 4 + M * 4 + N * 4 + N * NV * 4, M * NV),
+        "rasterize_bwd_entry_of": (M * (4 + 16 + 8 + 4) + s["tiles"] * 8, M * 4),
     }
     return table.get(name, (None, None))
 
@@ -185,7 +186,7 @@ def main(argv=None):
     sizes = {"N": args.n, "visible": int((out.proj.radius.get() > 0).sum()), "M": out.n_isect,
              "pixels": args.width * args.height, "C": C, "tiles": int(out.tile_ranges.shape[0]),
              "sh_floats": int(np.prod(params["sh"].shape[1:])), "passes": launches.get("radix_scatter", 0),
-             "det": not rt.caps.simt}
+             "det": (not rt.caps.simt) if hasattr(rt, "caps") else not rt.is_gpu}
     sizes["lanes_fwd"], sizes["lanes_bwd"] = lane_evaluations(out.raster, out.binned, out.proj,
                                                               args.width, args.height, C)
     rows = []
