@@ -10,29 +10,34 @@
 /* counts[i] = radius[i] > 0 ? max(tiles_touched[i], 0) : 0, and the least and greatest depth bit
  * pattern (as_uint) of the Gaussians that have entries: dbounds[0] = min, dbounds[1] = max
  * (dbounds must hold (UINT_MAX, 0) on entry; one global atomic per work-group and bound). */
-__kernel void bin_counts(__global const int *radius,        /* [N] */
-                         __global const int *tiles_touched, /* [N] */
-                         __global const float *depth,       /* [N] */
-                         const int n,
-                         __global int *counts,              /* [N] */
-                         volatile __global uint *dbounds) { /* [2] (min, max) */
-    __local uint l_min, l_max;
-    const int i = get_global_id(0);
-    if (get_local_id(0) == 0) { l_min = 0xFFFFFFFFu; l_max = 0u; }
-    barrier(CLK_LOCAL_MEM_FENCE);
+#ifndef BIN_WG
+#define BIN_WG 64   /* work-group size of bin_counts (ops/binning.py LOCAL) */
+#endif
+__kernel __attribute__((reqd_work_group_size(BIN_WG, 1, 1)))
+void bin_counts(__global const int *radius,        /* [N] */
+                __global const int *tiles_touched, /* [N] */
+                __global const float *depth,       /* [N] */
+                const int n,
+                __global int *counts,              /* [N] */
+                volatile __global uint *dbounds) { /* [2] (min, max) */
+    /* the group's bounds by a serial pass of work-item 0 over the group's values (local atomics
+     * per work-item cost several times more on PoCL) */
+    __local uint l_lo[BIN_WG], l_hi[BIN_WG];
+    const int i = get_global_id(0), l = get_local_id(0);
+    uint lo = 0xFFFFFFFFu, hi = 0u;
     if (i < n) {
         const int c = (radius[i] > 0) ? max(tiles_touched[i], 0) : 0;
         counts[i] = c;
-        if (c > 0) {
-            const uint b = as_uint(depth[i]);
-            atomic_min(&l_min, b);
-            atomic_max(&l_max, b);
-        }
+        if (c > 0) { lo = as_uint(depth[i]); hi = lo; }
     }
+    l_lo[l] = lo; l_hi[l] = hi;
     barrier(CLK_LOCAL_MEM_FENCE);
-    if (get_local_id(0) == 0 && l_min <= l_max) {
-        atomic_min(&dbounds[0], l_min);
-        atomic_max(&dbounds[1], l_max);
+    if (l == 0) {
+        for (int k = 1; k < BIN_WG; k++) { lo = min(lo, l_lo[k]); hi = max(hi, l_hi[k]); }
+        if (lo <= hi) {
+            atomic_min(&dbounds[0], lo);
+            atomic_max(&dbounds[1], hi);
+        }
     }
 }
 

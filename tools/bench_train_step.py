@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import sys
 import tempfile
@@ -61,11 +62,17 @@ def main(argv=None):
               f"{', depth' if cfg.use_depth and scene.has_depth else ''}{', flow' if cfg.use_flow else ''}"
               f"{', wavelet' if cfg.use_wavelet else ''}; median of {args.runs} steps after {args.warmup}")
         parts = {"render": [], "losses": [], "backward": [], "adam": [], "step": []}
+        cpu = []   # CPU seconds per step, all threads (moves much less than wall time under load)
+
+        def cpu_s():
+            r = resource.getrusage(resource.RUSAGE_SELF)
+            return r.ru_utime + r.ru_stime
         order = list(scene.train_indices)
         for i in range(args.warmup + args.runs):
             k = order[i % len(order)]
             f, tgt = scene.frames[k], tr.targets[k]
             rt.queue.finish()
+            c0 = cpu_s()
             t0 = time.perf_counter()
             out = render(rt, tr.params, f.camera, f.time, tgt.next_time)
             rt.queue.finish()
@@ -80,11 +87,14 @@ def main(argv=None):
             rt.queue.finish()
             t4 = time.perf_counter()
             if i >= args.warmup:
+                cpu.append(cpu_s() - c0)
                 for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("adam", t3, t4),
                                   ("step", t0, t4)):
                     parts[key].append(b - a)
         for key, ts in parts.items():
             print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
+        print(f"  CPU time per step (all threads) {statistics.median(cpu) * 1e3:.1f} ms "
+              f"(/ {os.cpu_count()} cores = {statistics.median(cpu) * 1e3 / (os.cpu_count() or 1):.1f} ms)")
         print(f"seconds per training step: {statistics.median(parts['step']):.3f}; "
               f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
