@@ -2,7 +2,8 @@
 # Measure endowave-cl on a GPU in one command, on a machine that has the GPU and its driver but
 # perhaps no pyopencl:
 #
-#   1. installs the carried wheels when pyopencl (or numpy, torch, pytest) is missing:
+#   1. installs the carried wheels when pyopencl or another requirement (numpy, torch, opencv, ...,
+#      pytest) is missing:
 #      pip install --no-index --find-links WHEELS ...  (WHEELS: --wheels DIR or $ENDOWAVE_WHEELS)
 #   2. finds the NVIDIA OpenCL driver (libnvidia-opencl.so.1: ldconfig -p, then common paths) and,
 #      when no ICD file registers it, writes one into a temporary vendors folder (with copies of
@@ -18,7 +19,10 @@
 # the defaults choose (PoCL here), saying so in the report, with short benchmark settings: this
 # is how the script is checked on machines without a GPU.
 #
-#   tools/gpu_check.sh [--wheels DIR] [--device SPEC] [--out FILE] [--dry-run] [--quick]
+# --setup-only stops after step 3; --quick uses short benchmark settings; NVIDIA_OPENCL_LIB=PATH
+# names the driver library when it is in none of the usual places.
+#
+#   tools/gpu_check.sh [--wheels DIR] [--device SPEC] [--out FILE] [--dry-run] [--quick] [--setup-only]
 set -u
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PY="${PYTHON:-python3}"
@@ -27,6 +31,7 @@ DEVICE="${ENDOWAVE_CL_DEVICE:-}"
 OUT=""
 DRY=0
 QUICK=0
+SETUP_ONLY=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --wheels) WHEELS="$2"; shift 2 ;;
@@ -34,7 +39,8 @@ while [ $# -gt 0 ]; do
         --out) OUT="$2"; shift 2 ;;
         --dry-run) DRY=1; shift ;;
         --quick) QUICK=1; shift ;;
-        -h|--help) sed -n '2,24p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        --setup-only) SETUP_ONLY=1; shift ;;
+        -h|--help) awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"; exit 0 ;;
         *) echo "gpu_check.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -63,26 +69,36 @@ fi
 
 # ---- 1. Python packages --------------------------------------------------------------------------
 section "1. Python packages"
+# module:distribution of what the kernels, tests and benchmarks import (setup.cfg install_requires
+# and the test extra; PoCL is not needed on a GPU machine)
+PKGS="numpy:numpy pyopencl:pyopencl torch:torch cv2:opencv-contrib-python-headless skimage:scikit-image
+      matplotlib:matplotlib tqdm:tqdm pywt:pywavelets pytest:pytest hypothesis:hypothesis"
 missing=()
-for mod in numpy pyopencl torch pytest matplotlib; do
-    "$PY" -c "import $mod" >/dev/null 2>&1 || missing+=("$mod")
+for pair in $PKGS; do
+    "$PY" -c "import ${pair%%:*}" >/dev/null 2>&1 || missing+=("${pair#*:}")
 done
 if [ ${#missing[@]} -eq 0 ]; then
-    log "all present: numpy pyopencl torch pytest matplotlib ($("$PY" -c 'import pyopencl; print("pyopencl", pyopencl.VERSION_TEXT)'))"
+    log "all present ($("$PY" -c 'import pyopencl; print("pyopencl", pyopencl.VERSION_TEXT)'))"
 elif [ -n "$WHEELS" ] && [ -d "$WHEELS" ]; then
     log "missing: ${missing[*]}; installing from the carried wheels in $WHEELS"
-    # pip names: the modules above are also the distribution names
+    if "$PY" -c 'import sys; sys.exit(sys.prefix != sys.base_prefix)'; then
+        # not a virtual environment (a system Python may refuse pip installs, PEP 668): make one
+        # that sees the system's packages, and install the missing ones there
+        VENV="${ENDOWAVE_GPU_VENV:-${TMPDIR:-/tmp}/endowave-gpu-venv}"
+        run "$PY" -m venv --system-site-packages "$VENV" && PY="$VENV/bin/python"
+        log "using the virtual environment $VENV"
+    fi
     run "$PY" -m pip install --no-index --find-links "$WHEELS" "${missing[@]}" || FAILED+=("pip install")
 else
     log "missing: ${missing[*]} and no wheel folder (--wheels DIR or \$ENDOWAVE_WHEELS): not installed"
-    [[ " ${missing[*]} " == *" pyopencl "* ]] && { log "pyopencl is required: stopping"; exit 1; }
 fi
+"$PY" -c "import pyopencl" >/dev/null 2>&1 || { log "pyopencl is required and not importable: stopping"; exit 1; }
 export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 
 # ---- 2. the NVIDIA OpenCL driver and its ICD file --------------------------------------------------
 section "2. OpenCL driver"
-LIB=""
-LIB=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so\.1/ {print $NF; exit}')
+LIB="${NVIDIA_OPENCL_LIB:-}"   # an explicit path wins (drivers installed in odd places)
+[ -n "$LIB" ] || LIB=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so\.1/ {print $NF; exit}')
 if [ -z "$LIB" ]; then
     for d in /usr/lib/x86_64-linux-gnu /usr/lib64 /usr/lib /usr/local/nvidia/lib64 /usr/local/nvidia/lib \
              /usr/lib/nvidia /usr/lib/aarch64-linux-gnu /usr/local/cuda/lib64 /run/nvidia/driver/usr/lib/x86_64-linux-gnu; do
@@ -137,6 +153,12 @@ from endowave_cl.ops.rasterize import raster_choice
 from endowave_cl.ops.sort import default_config
 print("rasterizer:", raster_choice(rt, 6).describe(), "| sort:", default_config(rt))
 EOF
+
+if [ $SETUP_ONLY -eq 1 ]; then
+    section "done (--setup-only: packages, driver and device checked; no tests or benchmarks)"
+    log "report: $OUT"
+    [ ${#FAILED[@]} -eq 0 ]; exit $?
+fi
 
 # ---- 4. tests and benchmarks -------------------------------------------------------------------
 if [ $DRY -eq 1 ]; then RUNS=3; STEPS=3; N=20000; else RUNS=7; STEPS=10; N=100000; fi
