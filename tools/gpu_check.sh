@@ -4,7 +4,8 @@
 #
 #   1. installs the carried wheels when pyopencl or another requirement (numpy, torch, opencv, ...,
 #      pytest) is missing:
-#      pip install --no-index --find-links WHEELS ...  (WHEELS: --wheels DIR or $ENDOWAVE_WHEELS)
+#      pip install --no-index --find-links WHEELS ...  (WHEELS: --wheels DIR or $ENDOWAVE_WHEELS),
+#      into a new virtual environment that sees the system's packages when PYTHON is not one
 #   2. finds the NVIDIA OpenCL driver (libnvidia-opencl.so.1: ldconfig -p, then common paths) and,
 #      when no ICD file registers it, writes one into a temporary vendors folder (with copies of
 #      the ICD files already registered) and exports OCL_ICD_VENDORS;
