@@ -202,7 +202,7 @@ def vec_bwd_local_bytes(C: int, batch: int, vw: int) -> int:
     """Local memory of the rasterize_vec_bwd kernel (mirror of its __local arrays)."""
     n_wi = (TILE // vw) * TILE
     nsv = (6 + C + 3) // 4                                           # float4 per slot (NSV)
-    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 4 + 16 + 16 * nsv * n_wi  # mean, cop, feat, gid, slot, thr, box, part
+    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 16 + 16 * nsv * n_wi  # mean, cop, feat, gid, thr, box, part
     return batch * per_gaussian + 4 * n_wi + 4                         # + wrote masks, max_last
 
 
