@@ -20,13 +20,23 @@ inline void store8(__global float *p, float8 v) {
     p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
 }
 
-/* Add v to a float in global memory.  OpenCL 1.2 has no float atomics, so this is a
- * compare-and-swap loop on the bit pattern.  The value is never read with a plain load (Oclgrind
+/* Add v to a float in global memory.  Where the device has native float atomics
+ * (cl_ext_float_atomics with global fp32 add; the runtime then builds with -cl-std=CL2.0 or CL3.0
+ * and -DDEVICE_FLOAT_ATOMIC_ADD=1, see DeviceCaps in endowave_cl/runtime.py) this is one relaxed
+ * atomic_fetch_add.  Else (OpenCL 1.2 has no float atomics) a compare-and-swap loop on the bit
+ * pattern.  The value is never read with a plain load (Oclgrind
  * would report a race): the loop starts from the guess 0 and each failed atomic_cmpxchg returns the
  * current bits.  (Reading it first with atomic_or(p, 0) is equivalent but costs a full fence on
  * PoCL: about a third of the CPU adjoint's time.)
  * Callers should first reduce in local memory so that each work-group issues one
  * such add per destination. */
+#if defined(DEVICE_FLOAT_ATOMIC_ADD) && DEVICE_FLOAT_ATOMIC_ADD
+#pragma OPENCL EXTENSION cl_ext_float_atomics : enable
+inline void atomic_add_global_f(volatile __global float *p, float v) {
+    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
+                              memory_scope_device);
+}
+#else
 inline void atomic_add_global_f(volatile __global float *p, float v) {
     volatile __global int *pi = (volatile __global int *)p;
     int old_bits = 0;  /* a guess: a failed compare-and-swap returns the current value atomically */
@@ -37,6 +47,7 @@ inline void atomic_add_global_f(volatile __global float *p, float v) {
         old_bits = prev;
     }
 }
+#endif
 
 /* Deterministic adjoint: the slot, in the unsorted binning order, of Gaussian g's entry for tile
  * (tx, ty).  bin_gaussians (cl/bin.cl) emitted g's entries at offsets[g] .. offsets[g + 1], its

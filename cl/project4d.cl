@@ -11,12 +11,7 @@ __kernel void project4d(
     __global const float *opacity,   /* [N] logit */
     __global const float *sh,        /* [N, NT+1, SH_K, 3] */
     __global const float *phase,     /* [N, NT+1] */
-    __global const float *cam_buf,   /* [CAM_SIZE] */
-    const float t,
-    const float t_flow,
-    const int has_flow,
-    const int tiles_x,
-    const int tiles_y,
+    P4_VIEW_ARGS,
     __global float *means2d,         /* [N, 2] */
     __global float *conic,           /* [N, 3] */
     __global float *depth,           /* [N] */
@@ -24,7 +19,8 @@ __kernel void project4d(
     __global float *opac,            /* [N] */
     __global float *features,        /* [N, CHANNELS] */
     __global int *rect,              /* [N, 4] */
-    __global int *tiles_touched)     /* [N] */
+    __global int *tiles_touched,     /* [N] */
+    __global float *color_inner)     /* [N, NT+1, 3] sum_k c[n, k, rgb] Y_k, for the adjoint */
 {
     int i = get_global_id(0);
     if (i >= n) return;
@@ -38,7 +34,7 @@ __kernel void project4d(
         for (int c = 0; c < CHANNELS; ++c) features[CHANNELS * i + c] = 0.0f;
         for (int k = 0; k < 4; ++k) rect[4 * i + k] = 0;
         tiles_touched[i] = 0;
-        return;
+        return;   /* culled: no colour, and color_inner is never read (the adjoint skips it) */
     }
     means2d[2 * i] = s.means2d[0]; means2d[2 * i + 1] = s.means2d[1];
     for (int k = 0; k < 3; ++k) conic[3 * i + k] = s.conic[k];
@@ -59,7 +55,10 @@ __kernel void project4d(
         float inner[3] = {0.0f, 0.0f, 0.0f};   /* sum_k c[f, k, rgb] Y_k: contiguous reads */
         for (int k = 0; k < SH_K; ++k)
             for (int c = 0; c < 3; ++c) inner[c] += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
-        for (int c = 0; c < 3; ++c) acc[c] += inner[c] * cs[f];
+        for (int c = 0; c < 3; ++c) {
+            acc[c] += inner[c] * cs[f];
+            color_inner[(i * (NT + 1) + f) * 3 + c] = inner[c];   /* the adjoint reads these, not sh */
+        }
     }
     for (int c = 0; c < 3; ++c) out[c] = fmax(0.5f + acc[c], 0.0f);
     out[3] = s.p[2];

@@ -1,5 +1,7 @@
-/* project4d adjoint: one work-item per Gaussian; recomputes the forward (p4_forward) and runs the
- * chain rule back to the parameters.  No atomics: every Gaussian writes only its own rows.
+/* project4d adjoint: one work-item per Gaussian; recomputes the forward's geometry (p4_forward),
+ * takes the colour's per-frequency SH sums from the forward (color_inner: the SH coefficients,
+ * (NT+1) * SH_K * 3 floats per Gaussian, are not read again) and runs the chain rule back to the
+ * parameters.  No atomics: every Gaussian writes only its own rows.
  * Reference adjoint: torch autograd of endowave_cl/reference/project.py::project4d_ref.
  * Notation: v_x = dL/dx.  2x2 / 3x3 / 4x4 matrices are row-major. */
 #define P4_FORWARD_NO_RECT
@@ -33,14 +35,9 @@ __kernel void project4d_bwd(
     __global const float *quat_l,    /* [N, 4] */
     __global const float *quat_r,    /* [N, 4] */
     __global const float *opacity,   /* [N] */
-    __global const float *sh,        /* [N, NT+1, SH_K, 3] */
+    __global const float *color_inner, /* [N, NT+1, 3] forward output: sum_k c[n, k, rgb] Y_k */
     __global const float *phase,     /* [N, NT+1] */
-    __global const float *cam_buf,   /* [CAM_SIZE] */
-    const float t,
-    const float t_flow,
-    const int has_flow,
-    const int tiles_x,
-    const int tiles_y,
+    P4_VIEW_ARGS,
     __global const int *radius,      /* [N] forward output: 0 = culled */
     __global const float *v_means2d, /* [N, 2] */
     __global const float *v_conic,   /* [N, 3] */
@@ -79,13 +76,8 @@ __kernel void project4d_bwd(
     p4_view_dir(&cam, &s, d);
     sh_basis(d, Y);
     teash_cos_sin(phase, i, t, cs, sn);
-    float inner[(NT + 1) * 3];   /* sum_k c[f, k, rgb] Y_k, one read of the coefficients */
-    for (int f = 0; f <= NT; ++f)
-        for (int c = 0; c < 3; ++c) inner[3 * f + c] = 0.0f;
-    for (int f = 0; f <= NT; ++f)
-        for (int k = 0; k < SH_K; ++k)
-            for (int c = 0; c < 3; ++c)
-                inner[3 * f + c] += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
+    float inner[(NT + 1) * 3];   /* sum_k c[f, k, rgb] Y_k, stored by the forward (same bits) */
+    for (int j = 0; j < (NT + 1) * 3; ++j) inner[j] = color_inner[(NT + 1) * 3 * i + j];
     float gcol[3];
     for (int c = 0; c < 3; ++c) {
         float acc = 0.0f;

@@ -59,6 +59,15 @@
 #define CAM_POS 17     /* 3 floats, camera centre in world coordinates */
 #define CAM_SIZE 20
 
+/* The arguments of both kernels after the per-Gaussian inputs: the camera, the times and the grid */
+#define P4_VIEW_ARGS                                                                       \
+    __global const float *cam_buf,   /* [CAM_SIZE] */                                     \
+    const float t,                   /* render time */                                    \
+    const float t_flow,              /* flow target time (when has_flow) */               \
+    const int has_flow,                                                                   \
+    const int tiles_x,                                                                    \
+    const int tiles_y
+
 typedef struct {
     float R[9];
     float tv[3];

@@ -17,7 +17,7 @@
  * endowave_cl/reference/rasterize.py): -DC=<channels>, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP.
  * Pixel centre convention: pixel (i, j) has centre (i + 0.5, j + 0.5).
  */
-#include "common.h"
+#include "raster_common.h"   /* exp_nonpos, TileWork, the shared arguments */
 
 /* The helpers below are shared with rasterize_bwd.cl, which includes this file with
  * RASTERIZE_HELPERS_ONLY defined, so both passes make the same skip decisions. */
@@ -28,30 +28,7 @@ inline float gauss_power(float4 cop, float2 d) {
     return -0.5f * (cop.x * d.x * d.x + cop.z * d.y * d.y) - cop.y * d.x * d.y;
 }
 
-/* exp(x) for x <= 0 in plain arithmetic (no builtin call, so PoCL can inline and vectorise it):
- * Cody-Waite reduction x = k ln2 + r, |r| <= ln2 / 2, then a degree-7 Taylor polynomial of e^r
- * (truncation < 1e-8 relative) and the scaling by 2^k in the exponent bits.  About 1 ulp from
- * the correctly rounded value; x below EXP_FLOOR gives ~e^EXP_FLOOR (alpha far below ALPHA_MIN).
- * (PoCL compiles builtin math such as exp and fmin to out-of-line calls: several times slower.) */
-#define EXP_FLOOR (-80.0f)
-#define LN2_HI 0.693145751953125f           /* ln 2 split so that k * LN2_HI is exact */
-#define LN2_LO 1.428606765330187045e-06f
-#define LOG2E 1.44269504088896341f
-inline float exp_nonpos(float x) {
-    x = x < EXP_FLOOR ? EXP_FLOOR : x;
-    const int k = (int)(x * LOG2E - 0.5f);  /* round to nearest for x <= 0 */
-    const float kf = (float)k;
-    const float r = (x - kf * LN2_HI) - kf * LN2_LO;
-    float p = 1.0f / 5040.0f;
-    p = p * r + 1.0f / 720.0f;
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
-    p = p * r + 1.0f;
-    p = p * r + 1.0f;
-    return as_float(as_int(p) + (k << 23));
-}
+/* exp_nonpos: raster_common.h */
 
 /* Early skip without exp: alpha = min(ALPHA_MAX, opac exp(power)) < ALPHA_MIN whenever
  * power < log(ALPHA_MIN / opac) - SKIP_MARGIN.  SKIP_MARGIN (in log units, i.e. a 0.1% factor on
@@ -108,33 +85,21 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
                __global const float *conic,      /* [N, 3] (a, b, c) */
                __global const float *opac,       /* [N] */
                __global const float *features,   /* [N, C] */
-               __global const int *sorted_values,/* [M] Gaussian ids, tile-major then depth */
-               __global const int2 *tile_ranges, /* [n_tiles] (start, end) */
-               const int width, const int height, const int tiles_x,
-               __global float *out,              /* [H, W, C] */
-               __global float *alpha_out,        /* [H, W] */
-               __global float *t_final,          /* [H, W] */
-               __global int *last_out)           /* [H, W] */
+               RASTER_LIST_ARGS, RASTER_FWD_OUT_ARGS)
 {
-    __local float2 l_mean[TILE_PIXELS];
-    __local float4 l_cop[TILE_PIXELS];           /* (a, b, c, opac) */
-    __local float l_feat[TILE_PIXELS * C];
-    __local float l_thr[TILE_PIXELS];            /* power threshold of the early skip */
-    __local float4 l_box[TILE_PIXELS];           /* cull box of each Gaussian */
+    RASTER_BATCH_LOCALS(TILE_PIXELS);
     __local uchar l_list[N_SUB * TILE_PIXELS];   /* per sub-block lists of batch indices */
     __local int l_len[N_SUB];
     __local int l_done[2];                       /* done-pixel counters, used alternately */
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * TILE + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix = get_global_id(0), iy = get_global_id(1);
+    const TileWork w = tile_work(1, 1, tiles_x);
+    const int lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix = w.x0, iy = w.y0;
     const bool inside = ix < width && iy < height;
-    const float px = (float)ix + 0.5f, py = (float)iy + 0.5f;
-    const int my_sub = (ly / SUB) * SUBS_PER_ROW + lx / SUB;
+    const float px = w.px0, py = w.py0;
+    const int my_sub = (w.ly / SUB) * SUBS_PER_ROW + w.lx / SUB;
 
-    const int2 range = tile_ranges[tile];
+    const int2 range = tile_ranges[w.tile];
     const int n_entries = range.y - range.x;
     const int n_batches = (n_entries + TILE_PIXELS - 1) / TILE_PIXELS;
 

@@ -26,11 +26,12 @@
  * one atomic_add_global_f.  The in-group order of the float adds is fixed; the order in which the
  * groups' atomic adds land is not, so results can differ in the last bits between runs.
  *
- * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for the entry of
- * Gaussian g in this tile to v_entry[u], u = binned_slot(...) its position in the unsorted binning
- * order (entries are unique to a tile, so no atomics; every u is written at most once), and
- * rasterize_bwd_gather sums each Gaussian's slots, which are contiguous and in tile order:
- * bit-identical results from run to run.
+ * Deterministic mode (-DDETERMINISTIC=1): step (3) stores the group's total for sorted entry k
+ * (Gaussian g in this tile) to v_entry[k] (entries are unique to a tile, so no atomics; the
+ * stores of a tile are contiguous), and rasterize_bwd_gather sums each Gaussian's entries in its
+ * binning order (its rect's tiles row-major: slot u -> entry entry_of[u], from
+ * rasterize_bwd_entry_of): bit-identical results from run to run.  (Storing at the binning slot
+ * instead scattered 4 (6 + C) bytes per entry over the whole array: a cache miss on each store.)
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
@@ -70,20 +71,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    __global const float *conic,      /* [N, 3] */
                    __global const float *opac,       /* [N] */
                    __global const float *features,   /* [N, C] */
-                   __global const int *sorted_values,/* [M] */
-                   __global const int2 *tile_ranges, /* [n_tiles] */
-                   const int width, const int height, const int tiles_x,
-                   __global const float *t_final,    /* [H, W] */
-                   __global const int *last_in,      /* [H, W] */
-                   __global const float *v_out,      /* [H, W, C] */
-                   __global const float *v_alpha,    /* [H, W] */
-                   volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
-                   volatile __global float *v_conic,    /* [N, 3] */
-                   volatile __global float *v_opac,     /* [N] */
-                   volatile __global float *v_features, /* [N, C] */
-                   __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
-                   __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
-                   __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
+                   RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
@@ -97,17 +85,15 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     __local int l_n_act;
     __local int l_max_last;
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * TILE + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix = get_global_id(0), iy = get_global_id(1);
+    const TileWork w = tile_work(1, 1, tiles_x);
+    const int lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix = w.x0, iy = w.y0;
     const bool inside = ix < width && iy < height;
-    const float px = (float)ix + 0.5f, py = (float)iy + 0.5f;
+    const float px = w.px0, py = w.py0;
     const int p = iy * width + ix;
-    const int my_sub = (ly / SUB) * SUBS_PER_ROW + lx / SUB;
+    const int my_sub = (w.ly / SUB) * SUBS_PER_ROW + w.lx / SUB;
 
-    const int2 range = tile_ranges[tile];
+    const int2 range = tile_ranges[w.tile];
 
     float T = 1.0f, T_fin = 1.0f, va = 0.0f;
     float vo[C], S[C];
@@ -121,11 +107,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
         for (int c = 0; c < C; c++) vo[c] = v_out[p * C + c];
     }
 
-    if (lid == 0) l_max_last = 0;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (last > 0) atomic_max(&l_max_last, last);
-    barrier(CLK_LOCAL_MEM_FENCE);
-    const int max_last = l_max_last;                          /* uniform */
+    const int max_last = group_max_last(last, lid, &l_max_last);   /* uniform */
     const int n_batches = (max_last + BATCH - 1) / BATCH;
 
     for (int b = n_batches - 1; b >= 0; b--) {
@@ -215,17 +197,9 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 float sum = 0.0f;
                 for (int s = 0; s < N_SUB; s++) sum += l_part[lid * N_SUB + s];
 #if DETERMINISTIC
-                const int u = binned_slot(rect, offsets, l_gid[j], tx, ty);
-                if (u >= 0) v_entry[u * NV + lid] = sum;   /* this group's alone */
+                v_entry[(base + j) * NV + lid] = sum;   /* sorted entry base + j: this group's alone */
 #else
-                if (sum != 0.0f) {
-                    const int g = l_gid[j];
-                    volatile __global float *dst =
-                        lid < 2 ? v_means2d + 2 * g + lid :
-                        lid < 5 ? v_conic + 3 * g + (lid - 2) :
-                        lid == 5 ? v_opac + g : v_features + g * C + (lid - 6);
-                    atomic_add_global_f(dst, sum);
-                }
+                add_gradient(lid, l_gid[j], sum, v_means2d, v_conic, v_opac, v_features);
 #endif
             }
             /* No barrier needed here: the next iteration's step (1) rewrites l_pix, which step (3)
@@ -235,11 +209,32 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
     }
 }
 
-/* Deterministic mode, second pass: one work-item per Gaussian g sums its per-entry terms, which the
- * backward pass stored at g's binning slots offsets[g] .. offsets[g + 1] (its rect's tiles
- * row-major, see binned_slot in common.h), in that order, and writes its gradients.  v_entry is zero
- * where the backward pass had nothing for an entry. */
-__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in binning order */
+/* Deterministic mode, before the gather: entry_of[u] = k for the sorted entry k whose binning slot
+ * (binned_slot in common.h) is u; entry_of must hold -1 on entry (slots with no sorted entry keep
+ * it).  One work-item per tile walks its sorted entries. */
+__kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] */
+                                     __global const int2 *tile_ranges,  /* [n_tiles] */
+                                     const int n_tiles, const int tiles_x,
+                                     __global const int4 *rect,         /* [N] binning rects */
+                                     __global const int *offsets,       /* [N + 1] binning offsets */
+                                     __global int *entry_of)            /* [M] */
+{
+    const int t = get_global_id(0);
+    if (t >= n_tiles) return;
+    const int tx = t % tiles_x, ty = t / tiles_x;
+    const int2 range = tile_ranges[t];
+    for (int k = range.x; k < range.y; k++) {
+        const int u = binned_slot(rect, offsets, sorted_values[k], tx, ty);
+        if (u >= 0) entry_of[u] = k;
+    }
+}
+
+/* Deterministic mode, second pass: one work-item per Gaussian g sums the per-entry terms the
+ * backward pass stored for its entries (v_entry in sorted order), taken in g's binning order
+ * offsets[g] .. offsets[g + 1] (its rect's tiles row-major, entry_of[u] the sorted entry of slot
+ * u), and writes its gradients.  v_entry is zero where the backward pass had nothing for an entry. */
+__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in sorted order */
+                                   __global const int *entry_of,     /* [M] sorted entry of each slot */
                                    __global const int *offsets,      /* [N + 1] */
                                    const int n,
                                    __global float *v_means2d,        /* [N, 2] */
@@ -252,8 +247,11 @@ __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] i
     float sum[NV];
     for (int k = 0; k < NV; k++) sum[k] = 0.0f;
     const int end = offsets[g + 1];
-    for (int u = offsets[g]; u < end; u++)
-        for (int k = 0; k < NV; k++) sum[k] += v_entry[u * NV + k];
+    for (int u = offsets[g]; u < end; u++) {
+        const int e = entry_of[u];
+        if (e < 0) continue;
+        for (int k = 0; k < NV; k++) sum[k] += v_entry[e * NV + k];
+    }
     v_means2d[2 * g] = sum[0];
     v_means2d[2 * g + 1] = sum[1];
     for (int k = 0; k < 3; k++) v_conic[3 * g + k] = sum[2 + k];

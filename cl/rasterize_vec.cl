@@ -106,30 +106,18 @@ inline intV lane_dy(void) {
 #ifndef RASTERIZE_VEC_HELPERS_ONLY
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
-                   __global const int *sorted_values,/* [M] Gaussian ids, tile-major then depth */
-                   __global const int2 *tile_ranges, /* [n_tiles] (start, end) */
-                   const int width, const int height, const int tiles_x,
-                   __global float *out,              /* [H, W, C] */
-                   __global float *alpha_out,        /* [H, W] */
-                   __global float *t_final,          /* [H, W] */
-                   __global int *last_out)           /* [H, W] */
+                   RASTER_LIST_ARGS, RASTER_FWD_OUT_ARGS)
 {
-    __local float2 l_mean[FWD_BATCH];
-    __local float4 l_cop[FWD_BATCH];                 /* (a, b, c, opac) */
-    __local float l_feat[FWD_BATCH * C];
-    __local float l_thr[FWD_BATCH];                  /* power threshold of the early skip */
-    __local float4 l_box[FWD_BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
+    RASTER_BATCH_LOCALS(FWD_BATCH);
     __local uchar l_list[N_BLK * FWD_BATCH];     /* per culling-block lists of batch indices */
     __local int l_len[N_BLK];
     __local int l_done[2];                       /* done-work-item counters, used alternately */
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * BX + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix0 = tx * TILE + lx * BW, iy0 = ty * TILE + ly * BH;   /* first pixel of the block */
-    const float px0 = (float)ix0 + 0.5f, px1 = px0 + (float)(BW - 1);   /* block's pixel centres */
-    const float py0 = (float)iy0 + 0.5f, py1 = py0 + (float)(BH - 1);
+    const TileWork w = tile_work(BW, BH, tiles_x);
+    const int lx = w.lx, ly = w.ly, lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix0 = w.x0, iy0 = w.y0;                                  /* first pixel of the block */
+    const float px0 = w.px0, px1 = px0 + (float)(BW - 1);              /* block's pixel centres */
+    const float py0 = w.py0, py1 = py0 + (float)(BH - 1);
     const int my_blk = (ly / BROWS) * BX + lx;
 
     const intV ldx = lane_dx(), ldy = lane_dy();
@@ -138,7 +126,7 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
     /* lanes outside the image start done: they write nothing */
     const intV inside = (ldx + ix0 < width) & (ldy + iy0 < height);
 
-    const int2 range = tile_ranges[tile];
+    const int2 range = tile_ranges[w.tile];
     const int n_entries = range.y - range.x;
     const int n_batches = (n_entries + FWD_BATCH - 1) / FWD_BATCH;
 

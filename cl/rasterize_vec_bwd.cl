@@ -16,8 +16,8 @@
  * of its mask l_wrote[work-item].  After the batch, one work-item per entry adds up the slots that
  * were written, in work-item order (float4 adds; no slot needs zeroing), and adds the totals to
  * the global gradients with atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1,
- * stores them to the entry's binning slot of v_entry (binned_slot in common.h, looked up once per
- * entry while staging) for rasterize_bwd_gather (in rasterize_bwd.cl): bit-identical between runs.
+ * stores them to v_entry at the entry's sorted position for rasterize_bwd_gather (in
+ * rasterize_bwd.cl), which sums them per Gaussian in binning order: bit-identical between runs.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
  * the largest that fits local memory, since l_part4 holds BATCH * N_WI * NSV float4), -DDETERMINISTIC.
@@ -41,39 +41,23 @@
 
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
-                       __global const int *sorted_values,/* [M] */
-                       __global const int2 *tile_ranges, /* [n_tiles] */
-                       const int width, const int height, const int tiles_x,
-                       __global const float *t_final,    /* [H, W] */
-                       __global const int *last_in,      /* [H, W] */
-                       __global const float *v_out,      /* [H, W, C] */
-                       __global const float *v_alpha,    /* [H, W] */
-                       volatile __global float *v_means2d,  /* [N, 2]  accumulated (+=) */
-                       volatile __global float *v_conic,    /* [N, 3] */
-                       volatile __global float *v_opac,     /* [N] */
-                       volatile __global float *v_features, /* [N, C] */
-                       __global float *v_entry,          /* [M, NV] per-entry terms (DETERMINISTIC only) */
-                       __global const int4 *rect,        /* [N] binning rects (DETERMINISTIC only) */
-                       __global const int *offsets)      /* [N + 1] binning offsets (DETERMINISTIC only) */
+                       RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
     __local float2 l_mean[BATCH];
     __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
     __local float l_feat[BATCH * C];
     __local int l_gid[BATCH];
-    __local int l_slot[BATCH];                   /* binned_slot of each entry (DETERMINISTIC) */
     __local float l_thr[BATCH];
     __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
     __local uint l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
 
-    const int lx = get_local_id(0), ly = get_local_id(1);
-    const int lid = ly * BX + lx;
-    const int tx = get_group_id(0), ty = get_group_id(1);
-    const int tile = ty * tiles_x + tx;
-    const int ix0 = tx * TILE + lx * BW, iy0 = ty * TILE + ly * BH;   /* first pixel of the block */
-    const float px0 = (float)ix0 + 0.5f, px1 = px0 + (float)(BW - 1);   /* block's pixel centres */
-    const float py0 = (float)iy0 + 0.5f, py1 = py0 + (float)(BH - 1);
+    const TileWork w = tile_work(BW, BH, tiles_x);
+    const int lid = w.lid, tx = w.tx, ty = w.ty;
+    const int ix0 = w.x0, iy0 = w.y0;                                  /* first pixel of the block */
+    const float px0 = w.px0, px1 = px0 + (float)(BW - 1);              /* block's pixel centres */
+    const float py0 = w.py0, py1 = py0 + (float)(BH - 1);
 
     /* per-lane inputs; lanes outside the image: T_final 1, last 0, no cotangent */
     float tf_l[VW], va_l[VW], vo_l[C * VW];
@@ -94,16 +78,15 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     const floatV T_fin = vloadF(0, tf_l);
     const intV last = vloadI(0, last_l);
     const floatV va_tf = vloadF(0, va_l) * T_fin;    /* v_alpha T_final */
-    floatV vo[C], S[C];
-    for (int c = 0; c < C; c++) { vo[c] = vloadF(c, vo_l); S[c] = (floatV)(0.0f); }
+    floatV vo[C];
+    for (int c = 0; c < C; c++) vo[c] = vloadF(c, vo_l);
+    /* D = sum_c vo_c S_c, S_c the colour composited behind the current entry: the adjoint needs
+     * the S_c only in this combination, so one running value replaces the C of them */
+    floatV D = (floatV)(0.0f);
     floatV T = T_fin;
 
-    const int2 range = tile_ranges[tile];
-    if (lid == 0) l_max_last = 0;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (max_last_mine > 0) atomic_max(&l_max_last, max_last_mine);
-    barrier(CLK_LOCAL_MEM_FENCE);
-    const int max_last = l_max_last;                          /* uniform */
+    const int2 range = tile_ranges[w.tile];
+    const int max_last = group_max_last(max_last_mine, lid, &l_max_last);   /* uniform */
     const int n_batches = (max_last + BATCH - 1) / BATCH;
 
     for (int b = n_batches - 1; b >= 0; b--) {
@@ -112,17 +95,13 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         for (int j = lid; j < count; j += N_WI) {
             const int g = sorted_values[base + j];
             l_gid[j] = g;
-#if DETERMINISTIC
-            l_slot[j] = binned_slot(rect, offsets, g, tx, ty);
-#endif
             stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
         {   /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
-            floatV s_cur[C];
-            for (int c = 0; c < C; c++) s_cur[c] = S[c];
+            floatV d_cur = D;
             /* the batch entries whose cull box reaches this block, in order (branch-free) */
             uchar hits[BATCH];
             int n_hits = 0;
@@ -152,13 +131,14 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                             const floatV inv_om = 1.0f / (1.0f - alpha);
                             t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
                             const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
-                            floatV v_al = va_tf * inv_om;              /* d L / d alpha_j */
+                            /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
+                            floatV dot = (floatV)(0.0f);
                             for (int c = 0; c < C; c++) {
-                                const float f = l_feat[j * C + c];
-                                v_al += vo[c] * (f * t_cur - s_cur[c] * inv_om);
-                                s_cur[c] += f * w;
+                                dot += vo[c] * l_feat[j * C + c];
                                 term[6 + c] = vo[c] * w;
                             }
+                            const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
+                            d_cur += dot * w;
                             for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
                             const intV grad = use & (raw <= ALPHA_MAX);
@@ -178,7 +158,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             }
             l_wrote[lid] = wrote;
             T = t_cur;
-            for (int c = 0; c < C; c++) S[c] = s_cur[c];
+            D = d_cur;
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
@@ -193,19 +173,10 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                     for (int v = 0; v < NSV; v++) sum[v] += src[i * NSV + v];
             const float *tot = (const float *)sum;   /* [4 * NSV], the NV values first */
 #if DETERMINISTIC
-            const int u = l_slot[j];                  /* this group's alone */
-            if (u >= 0)
-                for (int k = 0; k < NV; k++) v_entry[u * NV + k] = tot[k];
+            for (int k = 0; k < NV; k++) v_entry[(base + j) * NV + k] = tot[k];   /* sorted entry: ours alone */
 #else
-            const int g = l_gid[j];
-            for (int k = 0; k < NV; k++) {
-                if (tot[k] == 0.0f) continue;
-                volatile __global float *dst =
-                    k < 2 ? v_means2d + 2 * g + k :
-                    k < 5 ? v_conic + 3 * g + (k - 2) :
-                    k == 5 ? v_opac + g : v_features + g * C + (k - 6);
-                atomic_add_global_f(dst, tot[k]);
-            }
+            for (int k = 0; k < NV; k++)
+                add_gradient(k, l_gid[j], tot[k], v_means2d, v_conic, v_opac, v_features);
 #endif
         }
         barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays, l_part4, l_wrote */

@@ -1,11 +1,11 @@
 /* exp(x) for x <= 0 on OpenCL vectors (floatVW, VW a build option: 2, 4, 8 or 16), in plain
  * arithmetic so that it stays inline and SIMD on CPU drivers (PoCL calls builtin exp out of line).
- * Lane for lane the same operations, in the same order, as exp_nonpos in rasterize.cl, so both
- * give bit-identical results: Cody-Waite reduction x = k ln2 + r, |r| <= ln2 / 2, degree-7 Taylor
- * polynomial of e^r (truncation < 1e-8 relative), scaling by 2^k in the exponent bits; about 1 ulp.
+ * Lane for lane the same operations, in the same order, as exp_nonpos (both are written from
+ * EXP_NONPOS_BODY in raster_common.h), so both give bit-identical results.
  * OpenCL C 1.2. */
 #ifndef ENDOWAVE_VEXP_H
 #define ENDOWAVE_VEXP_H
+#include "raster_common.h"   /* EXP_NONPOS_BODY */
 
 #ifndef VW
 #define VW 8
@@ -77,48 +77,35 @@ inline int vred_or(intV m) {
     return m2.x | m2.y;
 #endif
 }
-/* The lane sums of four vectors, (sum a, sum b, sum c, sum d), in one fixed order: each vector is
- * halved to 4 lanes, then adjacent pairs are added across the four at once (two shuffled adds
- * instead of the 3 x 4 of four separate reductions). */
+/* The lane sums of four vectors, (sum a, sum b, sum c, sum d), in one fixed order: two vectors are
+ * folded into one at full width (lanes 0..W/2-1 the halves of one, W/2.. of the other), so each
+ * step is one add of two shuffles instead of separate reductions per vector. */
 inline float4 vhsum4(floatV a, floatV b, floatV c, floatV d) {
 #if VW == 2
     return (float4)(a.x + a.y, b.x + b.y, c.x + c.y, d.x + d.y);
-#else
-#if VW == 16
-    const float8 a8 = a.lo + a.hi, b8 = b.lo + b.hi, c8 = c.lo + c.hi, d8 = d.lo + d.hi;
-    const float4 a4 = a8.lo + a8.hi, b4 = b8.lo + b8.hi, c4 = c8.lo + c8.hi, d4 = d8.lo + d8.hi;
-#elif VW == 8
-    const float4 a4 = a.lo + a.hi, b4 = b.lo + b.hi, c4 = c.lo + c.hi, d4 = d.lo + d.hi;
-#else
-    const float4 a4 = a, b4 = b, c4 = c, d4 = d;
-#endif
-    const float8 ab = (float8)(a4, b4), cd = (float8)(c4, d4);
+#elif VW == 4
+    const float8 ab = (float8)(a, b), cd = (float8)(c, d);
     const float8 p = (float8)(ab.even + ab.odd, cd.even + cd.odd);   /* 2 partial sums per vector */
     return p.even + p.odd;
+#elif VW == 8
+    const float8 ab = (float8)(a.lo, b.lo) + (float8)(a.hi, b.hi);   /* a a a a b b b b */
+    const float8 cd = (float8)(c.lo, d.lo) + (float8)(c.hi, d.hi);
+    const float8 p = (float8)(ab.even, cd.even) + (float8)(ab.odd, cd.odd);   /* aa bb cc dd */
+    return p.even + p.odd;
+#else   /* 16 */
+    const float16 ab = (float16)(a.lo, b.lo) + (float16)(a.hi, b.hi);   /* 8 partials of a, 8 of b */
+    const float16 cd = (float16)(c.lo, d.lo) + (float16)(c.hi, d.hi);
+    const float16 p = (float16)(ab.even, cd.even) + (float16)(ab.odd, cd.odd);   /* 4 of a, b, c, d */
+    const float8 q = p.even + p.odd;                                    /* 2 of each */
+    return q.even + q.odd;
 #endif
 }
 #define VALL(m) (vred_and(m) != 0)    /* every lane true */
 #define VANY(m) (vred_or(m) != 0)     /* some lane true */
 
-#define VEXP_FLOOR (-80.0f)
-#define VEXP_LN2_HI 0.693145751953125f           /* ln 2 split so that k * LN2_HI is exact */
-#define VEXP_LN2_LO 1.428606765330187045e-06f
-#define VEXP_LOG2E 1.44269504088896341f
-
+/* exp(x <= 0) on floatVW: the polynomial of raster_common.h, lane for lane (== exp_nonpos) */
 inline floatV vexp_nonpos(floatV x) {
-    x = x < (floatV)(VEXP_FLOOR) ? (floatV)(VEXP_FLOOR) : x;
-    const intV k = convert_intV(x * VEXP_LOG2E - 0.5f);  /* round toward zero = to nearest, x <= 0 */
-    const floatV kf = convert_floatV(k);
-    const floatV r = (x - kf * VEXP_LN2_HI) - kf * VEXP_LN2_LO;
-    floatV p = (floatV)(1.0f / 5040.0f);
-    p = p * r + 1.0f / 720.0f;
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
-    p = p * r + 1.0f;
-    p = p * r + 1.0f;
-    return as_floatV(as_intV(p) + (k << 23));
+    EXP_NONPOS_BODY(floatV, intV, convert_intV, convert_floatV, as_floatV, as_intV, x)
 }
 
 #endif

@@ -94,8 +94,9 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     v_alpha: cla [H, W] or None (zero); densify_stats: optional dict of device arrays
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
     deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
-    instead of float atomics; see ops/rasterize.py). None: on for CPU devices, where it is also
-    the faster mode (tools/bench_render.py times both), off on GPUs.
+    instead of float atomics; see ops/rasterize.py). None: on for devices without a reported SIMT
+    width (CPU drivers, where it is also the faster mode: tools/bench_render.py times both), off
+    on SIMT devices (GPUs), whose atomics are cheap.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
@@ -105,7 +106,8 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
 
     cam = out.camera
     if deterministic is None:
-        deterministic = not rt.is_gpu
+        from .ops.rasterize import simt_device
+        deterministic = not simt_device(rt)
     if v_alpha is None:
         # one zero image per size, kept by the runtime (the adjoint kernels only read v_alpha)
         v_alpha = rt.cached(("render.zero_v_alpha", cam.height, cam.width),

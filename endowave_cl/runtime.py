@@ -221,6 +221,84 @@ def _read_cache_entry(cache_file: Path, key: str) -> Tuple[bytes, List[str]]:
     return binary, list(header.get("kernels") or [])
 
 
+# cl_ext_float_atomics: CL_DEVICE_SINGLE_FP_ATOMIC_CAPABILITIES_EXT and its global-add bit
+_FP32_ATOMIC_CAPS_EXT = 0x4231
+_FP_ATOMIC_GLOBAL_ADD_EXT = 1 << 1
+# vendor attribute queries of the SIMD width: NVIDIA warp, AMD wavefront, Intel sub-group sizes
+_WARP_SIZE_NV = 0x4003
+_WAVEFRONT_WIDTH_AMD = 0x4043
+_SUB_GROUP_SIZES_INTEL = 0x4108
+
+
+@dataclass(frozen=True)
+class DeviceCaps:
+    """What the kernels' build options and the ops' launch shapes are chosen from: device queries,
+    not the device type.
+
+    simt_width: the hardware SIMD width that runs work-items in lock-step (NVIDIA warp, AMD
+    wavefront, largest Intel sub-group size, or 0 when the device reports none: CPU drivers such as
+    PoCL, whose work-items are loops that the explicit-SIMD kernels vectorise instead).
+    float_atomic_add: cl_ext_float_atomics with global fp32 add and OpenCL C >= 2.0, so the
+    adjoints' float adds can be native atomics (-DDEVICE_FLOAT_ATOMIC_ADD=1) instead of
+    compare-and-swap loops."""
+    max_work_group_size: int
+    local_mem_size: int
+    compute_units: int
+    simt_width: int
+    max_sub_groups: int
+    float_atomic_add: bool
+    opencl_c: Tuple[int, int]
+
+    @property
+    def simt(self) -> bool:
+        return self.simt_width > 1
+
+    def build_options(self) -> List[str]:
+        """-D options every kernel is built with (and the -cl-std they need)."""
+        opts = [f"-DDEVICE_SIMT_WIDTH={self.simt_width}"]
+        if self.float_atomic_add:
+            opts += ["-DDEVICE_FLOAT_ATOMIC_ADD=1"]
+        return opts
+
+    @property
+    def cl_std(self) -> str:
+        return "CL3.0" if self.float_atomic_add and self.opencl_c >= (3, 0) else (
+            "CL2.0" if self.float_atomic_add else "CL1.2")
+
+    def describe(self) -> str:
+        return (f"SIMT width {self.simt_width or 'none reported'}, sub-groups {self.max_sub_groups}, "
+                f"native float atomic add {'yes' if self.float_atomic_add else 'no (CAS loops)'}, "
+                f"OpenCL C {self.opencl_c[0]}.{self.opencl_c[1]}")
+
+
+def _query(device, param: int, default=0):
+    try:
+        return device.get_info(param)
+    except Exception:
+        return default
+
+
+def query_caps(device) -> DeviceCaps:
+    """DeviceCaps of a pyopencl device (every query that fails counts as absent)."""
+    ext = set((getattr(device, "extensions", "") or "").split())
+    simt = 0
+    if "cl_nv_device_attribute_query" in ext:
+        simt = int(_query(device, _WARP_SIZE_NV) or 0)
+    if not simt and "cl_amd_device_attribute_query" in ext:
+        simt = int(_query(device, _WAVEFRONT_WIDTH_AMD) or 0)
+    if not simt and ("cl_intel_subgroups" in ext or "cl_intel_required_subgroup_size" in ext):
+        sizes = _query(device, _SUB_GROUP_SIZES_INTEL, []) or []
+        simt = int(max(sizes)) if len(sizes) else 0
+    max_sg = int(_query(device, 0x105C, 0) or 0)   # CL_DEVICE_MAX_NUM_SUB_GROUPS (OpenCL 2.1+)
+    m = re.search(r"OpenCL C (\d+)\.(\d+)", str(_query(device, 0x103D, "") or ""))   # CL_DEVICE_OPENCL_C_VERSION
+    cver = (int(m.group(1)), int(m.group(2))) if m else (1, 2)
+    fadd = False
+    if "cl_ext_float_atomics" in ext and cver >= (2, 0):
+        fadd = bool(int(_query(device, _FP32_ATOMIC_CAPS_EXT, 0) or 0) & _FP_ATOMIC_GLOBAL_ADD_EXT)
+    return DeviceCaps(int(device.max_work_group_size), int(device.local_mem_size),
+                      int(device.max_compute_units), simt, max_sg, fadd, cver)
+
+
 class Runtime:
     """A context + queue on one device, a cache of built programs, and the per-device state of the
     ops: one memory pool (:meth:`pool`), one empty-buffer placeholder (:meth:`dummy_buffer`,
@@ -257,6 +335,14 @@ class Runtime:
     @property
     def is_gpu(self) -> bool:
         return self.entry.is_gpu
+
+    @property
+    def caps(self) -> DeviceCaps:
+        """The device queries the build options and launch shapes are chosen from (DeviceCaps)."""
+        c = self.cache.get("runtime.caps")
+        if c is None:
+            c = self.cache["runtime.caps"] = query_caps(self.device)
+        return c
 
     @property
     def compute_units(self) -> int:
@@ -313,17 +399,21 @@ class Runtime:
     def describe(self) -> str:
         d = self.device
         return (f"{self.name} ({d.version.strip()}, {self.compute_units} compute units, "
-                f"{self.local_mem_size // 1024} KiB local memory, max work-group {self.max_work_group_size})")
+                f"{self.local_mem_size // 1024} KiB local memory, max work-group {self.max_work_group_size}; "
+                f"{self.caps.describe()})")
 
     # -- building -----------------------------------------------------------------------------
     def _options(self, options: Sequence[str]) -> List[str]:
-        return ["-I", str(self.kdir), "-cl-std=CL1.2", *options]
+        caps = self.caps
+        return ["-I", str(self.kdir), f"-cl-std={caps.cl_std}", *caps.build_options(), *options]
 
     def _cache_key(self, path: Path, options: Sequence[str]) -> str:
         h = hashlib.sha256()
         _source_with_includes_hash(path, h)
         d = self.device
-        h.update("\0".join([*options, d.name, d.platform.name, d.version, d.driver_version]).encode())
+        caps = self.caps
+        h.update("\0".join([*options, caps.cl_std, *caps.build_options(), d.name, d.platform.name, d.version,
+                             d.driver_version]).encode())
         return h.hexdigest()[:32]
 
     def cache_file(self, filename: str, options: Sequence[str] = ()) -> Path:

@@ -168,3 +168,26 @@ def test_bin_and_sort_tiny(rt):
     radius[0], tt[0] = 99, 15
     _check_binning(rt, rect, depth, radius, tt, 5, 3)
     _check_chain(rt, rect, depth, radius, tt, 80, 40)
+
+
+# --- compact keys (bin_and_sort keys only the depth bits the visible Gaussians span) ------------
+
+@pytest.mark.parametrize("depths", ["equal", "narrow", "negative", "culled_extremes"])
+def test_bin_and_sort_compact_keys_keep_the_order(rt, depths):
+    """bin_and_sort's compact keys (tile << d | depth bits - least bits) sort exactly as the full
+    keys do: all depths equal (d = 0), a narrow range, sign-bit patterns (negative depths sort after
+    positive ones as uint bits), and culled Gaussians with extreme depths that must not widen d."""
+    rng = np.random.default_rng(31)
+    rect, depth, radius, tt = _scene(rng, 2000, 13, 9, max_side=3)
+    if depths == "equal":
+        depth[:] = 4.0
+    elif depths == "narrow":
+        depth = (4.0 + rng.integers(0, 5, depth.size) * np.float32(2 ** -20)).astype(np.float32)
+    elif depths == "negative":
+        depth = np.where(rng.random(depth.size) < 0.3, -depth, depth).astype(np.float32)
+    else:
+        depth[radius == 0] = np.where(rng.random(int((radius == 0).sum())) < 0.5, 1e-30, 1e30)
+    _check_chain(rt, rect, depth, radius, tt, 13 * 16 - 5, 9 * 16)
+    _, dshift = B._bin(rt, *_dev(rt, rect, depth, radius, tt), 13, compact=True)
+    vis = depth[radius > 0].view(np.uint32).astype(np.int64)
+    assert dshift == int(vis.max() - vis.min()).bit_length()

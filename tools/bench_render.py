@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import resource
 import statistics
 import sys
 import time
@@ -51,14 +52,25 @@ def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0
     return Gaussians(means, scales, ql, qr, rng.uniform(-1, 2, n), sh, rng.uniform(-np.pi, np.pi, (n, 3)))
 
 
-def median_ms(fn, runs, warmup):
+def cpu_s() -> float:
+    """CPU seconds (user + system) of this process, all threads (the OpenCL CPU driver's too)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def median_ms(fn, runs, warmup, cpu=None):
+    """Median wall ms of fn over runs after warmup; with a list cpu, the median CPU ms per run is
+    appended to it (on a loaded machine the CPU time moves much less than the wall time)."""
     for _ in range(warmup):
         fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(runs):
-        t0 = time.perf_counter()
+        c0, t0 = cpu_s(), time.perf_counter()
         fn()
         ts.append((time.perf_counter() - t0) * 1e3)
+        cs.append((cpu_s() - c0) * 1e3)
+    if cpu is not None:
+        cpu.append(statistics.median(cs))
     return statistics.median(ts)
 
 
@@ -84,7 +96,8 @@ def main(argv=None):
     t, t2 = 0.5, 0.55
 
     print(f"device: {rt.describe()}")
-    print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} cores")
+    print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load average "
+          f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)")
     print(f"sizes: N={args.n} Gaussians, {args.width}x{args.height}, C=6 channels, median of {args.runs} runs "
           f"after {args.warmup} warm-up")
 
@@ -106,8 +119,10 @@ def main(argv=None):
     def fwd():
         render(rt, params, cam, t, t2)
         rt.queue.finish()
-    fwd_ms = median_ms(fwd, args.runs, args.warmup)
-    print(f"forward (no per-stage syncs): {fwd_ms:.2f} ms = {1000 / fwd_ms:.1f} FPS")
+    fwd_cpu = []
+    fwd_ms = median_ms(fwd, args.runs, args.warmup, fwd_cpu)
+    print(f"forward (no per-stage syncs): {fwd_ms:.2f} ms = {1000 / fwd_ms:.1f} FPS; CPU time {fwd_cpu[0]:.1f} ms "
+          f"(all threads; / {os.cpu_count()} cores = {fwd_cpu[0] / (os.cpu_count() or 1):.1f} ms)")
 
     # backward
     import pyopencl.array as cla
@@ -126,11 +141,16 @@ def main(argv=None):
         bwd_stage.setdefault("rasterize_bwd", []).append(o.timings["rasterize_bwd"])
         bwd_stage.setdefault("project_bwd", []).append(o.timings["project_bwd"])
         bwd_stage.setdefault("backward", []).append((time.perf_counter() - t0) * 1e3)
-    median_ms(bwd, args.runs, args.warmup)
+    both_cpu = []
+    median_ms(bwd, args.runs, args.warmup, both_cpu)
     for k in ("rasterize_bwd", "project_bwd", "backward"):
         print(f"  backward {k:13s} {statistics.median(bwd_stage[k][args.warmup:]):8.2f} ms")
     b = statistics.median(bwd_stage["backward"][args.warmup:])
-    print(f"forward + backward: {fwd_ms + b:.2f} ms; backward / forward = {b / fwd_ms:.2f}")
+    print(f"forward + backward: {fwd_ms + b:.2f} ms; backward / forward = {b / fwd_ms:.2f}; load average now "
+          f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    bcpu = both_cpu[0] - fwd_cpu[0]
+    print(f"CPU time (all threads): forward {fwd_cpu[0]:.1f} ms, backward {bcpu:.1f} ms, forward + backward "
+          f"{both_cpu[0]:.1f} ms; backward / forward = {bcpu / fwd_cpu[0]:.2f}")
 
     if not args.no_reference:
         import torch

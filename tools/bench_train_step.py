@@ -7,12 +7,16 @@ with the per-part split (each part followed by a queue finish), the device and t
 the median of as many Trainer.train_step calls (the step as training runs it: no finish between
 the parts, its own read-backs and the NaN guard).
 
-    python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--no-flow] [--no-wavelet]
+    python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
+
+--downscale 2 trains on the frames at half size (320x256 for EndoNeRF), with the same number of
+Gaussians.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import sys
 import tempfile
@@ -30,6 +34,7 @@ def main(argv=None):
     ap.add_argument("--gaussians", type=int, default=100_000)
     ap.add_argument("--runs", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--downscale", type=float, default=1.0, help="frame size divisor (2: 320x256)")
     ap.add_argument("--no-flow", action="store_true")
     ap.add_argument("--no-wavelet", action="store_true")
     ap.add_argument("--device", default=None)
@@ -47,7 +52,7 @@ def main(argv=None):
         scene_path = Path(tempfile.mkdtemp()) / "synthetic_640"
         print(f"shared frames absent: generating a synthetic 640x512 scene in {scene_path}")
         make_synthetic_scene(scene_path, width=640, height=512, frames=16, seed=0)
-    scene = load_scene(scene_path)
+    scene = load_scene(scene_path, downscale=args.downscale)
     rt = get_runtime(args.device)
     cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0)
@@ -59,11 +64,17 @@ def main(argv=None):
               f"{', depth' if cfg.use_depth and scene.has_depth else ''}{', flow' if cfg.use_flow else ''}"
               f"{', wavelet' if cfg.use_wavelet else ''}; median of {args.runs} steps after {args.warmup}")
         parts = {"render": [], "losses": [], "backward": [], "adam": [], "step": []}
+        cpu = []   # CPU seconds per step, all threads (moves much less than wall time under load)
+
+        def cpu_s():
+            r = resource.getrusage(resource.RUSAGE_SELF)
+            return r.ru_utime + r.ru_stime
         order = list(scene.train_indices)
         for i in range(args.warmup + args.runs):
             k = order[i % len(order)]
             f, tgt = scene.frames[k], tr.targets[k]
             rt.queue.finish()
+            c0 = cpu_s()
             t0 = time.perf_counter()
             out = render(rt, tr.params, f.camera, f.time, tgt.next_time)
             rt.queue.finish()
@@ -78,12 +89,16 @@ def main(argv=None):
             rt.queue.finish()
             t4 = time.perf_counter()
             if i >= args.warmup:
+                cpu.append(cpu_s() - c0)
                 for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("adam", t3, t4),
                                   ("step", t0, t4)):
                     parts[key].append(b - a)
         for key, ts in parts.items():
             print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
-        print(f"seconds per training step: {statistics.median(parts['step']):.3f}")
+        print(f"  CPU time per step (all threads) {statistics.median(cpu) * 1e3:.1f} ms "
+              f"(/ {os.cpu_count()} cores = {statistics.median(cpu) * 1e3 / (os.cpu_count() or 1):.1f} ms)")
+        print(f"seconds per training step: {statistics.median(parts['step']):.3f}; "
+              f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
         steps = []
         for i in range(args.warmup + args.runs):
             rt.queue.finish()

@@ -51,46 +51,71 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
                   tiles_touched: cla.Array, tiles_x: int, tiles_y: int) -> BinEntries:
     """BinEntries(keys [M] uint64, values [M] int32, M, offsets [N + 1] int32): for each Gaussian with
     radius > 0, one entry per tile of its rect, row-major, at offsets[i] (the exclusive scan of
-    tiles_touched; offsets[N] = M).
+    tiles_touched; offsets[N] = M).  key = tile id << 32 | the float32 depth's bits.
 
     rect [N, 4] int32 (x0, y0, x1, y1) exclusive, clamped to the tiles_x x tiles_y grid;
     depth [N] float32; radius [N] int32; tiles_touched [N] int32 (= the rect's area).
     """
+    return _bin(rt, rect, depth, radius, tiles_touched, tiles_x, compact=False)[0]
+
+
+def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int, compact: bool):
+    """(BinEntries, depth_bits): compact=False gives the full keys (depth_bits 32); compact=True keys
+    tile id << depth_bits | (depth bits - least depth bits), depth_bits just enough for the range of
+    the visible Gaussians' depth patterns: the same order as the full keys in fewer bits."""
     n = int(depth.size)
     q = rt.queue
+    al = rt.pool()
     if n == 0:
-        return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32))
-    counts = cla.empty(q, n, np.int32)  # [N]
-    _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, np.int32(n), counts.data)
+        return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0,
+                          cla.zeros(q, 1, np.int32)), DEPTH_BITS
+    counts = cla.empty(q, n, np.int32, allocator=al)  # [N]
+    dbounds = cla.empty(q, 2, np.uint32, allocator=al)
+    dbounds.fill(np.uint32(0xFFFFFFFF))
+    dbounds[1:2].fill(np.uint32(0))
+    _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, depth.data, np.int32(n), counts.data,
+            dbounds.data)
     offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
     m = int(offsets[n:n + 1].get()[0])
-    keys = cla.empty(q, m, np.uint64)    # [M]
-    values = cla.empty(q, m, np.int32)   # [M]
+    dmin, dshift = 0, DEPTH_BITS
+    if compact and m > 0:
+        lo, hi = (int(v) for v in dbounds.get())
+        dmin, dshift = lo, (hi - lo).bit_length()
+    keys = cla.empty(q, m, np.uint64, allocator=al)    # [M]
+    values = cla.empty(q, m, np.int32, allocator=al)   # [M]
     if m > 0:
         _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
-                np.int32(n), np.int32(tiles_x), keys.data, values.data)
-    return BinEntries(keys, values, m, offsets)
+                np.int32(n), np.int32(tiles_x), np.uint32(dmin), np.int32(dshift), keys.data, values.data)
+    return BinEntries(keys, values, m, offsets), dshift
 
 
-def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int) -> cla.Array:
-    """[n_tiles, 2] int32 (start, end) of each tile's run in sorted_keys [M]; (0, 0) if empty."""
+def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int, shift: int = DEPTH_BITS) -> cla.Array:
+    """[n_tiles, 2] int32 (start, end) of each tile's run in sorted_keys [M] (tile = key >> shift);
+    (0, 0) if empty."""
     q = rt.queue
-    ranges = cla.zeros(q, (int(n_tiles), 2), np.int32)
+    ranges = cla.zeros(q, (int(n_tiles), 2), np.int32, allocator=rt.pool())
     m = int(sorted_keys.size)
     if m > 0 and n_tiles > 0:
-        _launch(rt, "tile_ranges", m, sorted_keys.data, np.int32(m), np.int32(n_tiles), ranges.data)
+        _launch(rt, "tile_ranges", m, sorted_keys.data, np.int32(m), np.int32(n_tiles), np.int32(shift),
+                ranges.data)
     return ranges
 
 
 def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles_touched: cla.Array,
                  width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:
     """Binned(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M, offsets [N + 1] int32) for
-    a width x height image: scan -> bin -> radix sort of the needed key bits -> ranges."""
+    a width x height image: scan -> bin -> radix sort of the needed key bits -> ranges.
+
+    The keys are the compact ones (see _bin): the tile id above only as many depth bits as the
+    visible depths' bit patterns span (22 for depths 3.5-4.5), so the sort runs
+    ceil((tile bits + depth bits) / radix bits) passes instead of ceil(key_bits / radix bits),
+    with the same order: sorted_values equal those of sorting the full keys."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    keys, values, m, offsets = bin_gaussians(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y)
-    sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, key_bits(n_tiles), sort_config)
-    return Binned(sorted_values, tile_ranges(rt, sorted_keys, n_tiles), m, offsets)
+    (keys, values, m, offsets), dshift = _bin(rt, rect, depth, radius, tiles_touched, tiles_x, compact=True)
+    bits = key_bits(n_tiles) - DEPTH_BITS + dshift
+    sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, bits, sort_config)
+    return Binned(sorted_values, tile_ranges(rt, sorted_keys, n_tiles, dshift), m, offsets)
 
 
 def bin_projected(rt, proj, width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:

@@ -27,6 +27,7 @@ class Projected:
     features: cla.Array       # [N, C] float32 [r, g, b, depth, flow_x, flow_y]
     rect: cla.Array           # [N, 4] int32 (x0, y0, x1, y1) exclusive, in tiles
     tiles_touched: cla.Array  # [N] int32
+    color_inner: cla.Array    # [N, NT+1, 3] float32 per-frequency SH sums of the colour (read by the adjoint)
     camera: object = None      # the camera projected with ...
     camera_buf: object = None  # ... and its device buffer: project4d_bwd reuses it for the same camera
 
@@ -88,7 +89,8 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
         means2d=cla.empty(q, (n, 2), f32, allocator=al), conic=cla.empty(q, (n, 3), f32, allocator=al),
         depth=cla.empty(q, (n,), f32, allocator=al), radius=cla.empty(q, (n,), i32, allocator=al),
         opac=cla.empty(q, (n,), f32, allocator=al), features=cla.empty(q, (n, channels), f32, allocator=al),
-        rect=cla.empty(q, (n, 4), i32, allocator=al), tiles_touched=cla.empty(q, (n,), i32, allocator=al))
+        rect=cla.empty(q, (n, 4), i32, allocator=al), tiles_touched=cla.empty(q, (n,), i32, allocator=al),
+        color_inner=cla.empty(q, (n, nt + 1, 3), f32, allocator=al))
     if n == 0:
         return out
     _check_params(params, n)
@@ -102,7 +104,7 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
                  np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
                  out.means2d.data, out.conic.data, out.depth.data, out.radius.data, out.opac.data,
-                 out.features.data, out.rect.data, out.tiles_touched.data)
+                 out.features.data, out.rect.data, out.tiles_touched.data, out.color_inner.data)
     return out
 
 
@@ -130,7 +132,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
     rt.launch_1d(k, n, WORK_GROUP,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
-                 params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
+                 params["quat_r"].data, params["opacity"].data, proj.color_inner.data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
                  np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
                  proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,

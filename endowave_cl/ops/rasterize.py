@@ -77,7 +77,7 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     """The variant that runs on rt for C feature channels.
 
     $ENDOWAVE_RASTER_VARIANT / $ENDOWAVE_RASTER_VW force a variant / lane count; else GPUs run the
-    scalar kernels and CPU devices the vector ones at the first of VEC_WIDTHS whose probe passes
+    scalar kernels (devices that report a SIMT width, DeviceCaps) and the others the vector ones at the first of VEC_WIDTHS whose probe passes
     (the Oclgrind simulator: VEC_WIDTH, not probed), then the scalar kernels.  A forced vector
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
@@ -107,8 +107,8 @@ def explain_choice(rt, C: int = 6):
     forced_v, forced_w, _ = _forced()
     if forced_v == "scalar":
         return RasterChoice("scalar"), [f"forced by {ENV_VARIANT}"], []
-    if forced_v is None and forced_w is None and rt.is_gpu:
-        return RasterChoice("scalar"), ["GPU"], []
+    if forced_v is None and forced_w is None and simt_device(rt):
+        return RasterChoice("scalar"), [f"SIMT width {rt.caps.simt_width}"], []
     forced = bool(forced_v or forced_w)
     widths = (forced_w,) if forced_w else (VEC_WIDTH,) + tuple(w for w in VEC_WIDTHS if w < VEC_WIDTH)
     notes, failed = [], []
@@ -138,6 +138,14 @@ def explain_choice(rt, C: int = 6):
         failed.append(f"{w} lanes: {v.reason}")
         notes.append(failed[-1])
     return (None if forced else RasterChoice("scalar")), notes, failed
+
+
+def simt_device(rt) -> bool:
+    """Whether rt's device runs work-items in lock-step hardware SIMD (DeviceCaps.simt: a warp,
+    wavefront or sub-group width reported by the driver): the one-pixel-per-work-item kernels suit
+    it; devices that report none (CPU drivers) run the explicit-SIMD vector kernels."""
+    caps = getattr(rt, "caps", None)
+    return bool(caps.simt) if caps is not None else bool(getattr(rt, "is_gpu", False))
 
 
 def raster_variant(rt, C: int = 6) -> str:
@@ -194,7 +202,7 @@ def vec_bwd_local_bytes(C: int, batch: int, vw: int) -> int:
     """Local memory of the rasterize_vec_bwd kernel (mirror of its __local arrays)."""
     n_wi = (TILE // vw) * TILE
     nsv = (6 + C + 3) // 4                                           # float4 per slot (NSV)
-    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 4 + 16 + 16 * nsv * n_wi  # mean, cop, feat, gid, slot, thr, box, part
+    per_gaussian = 8 + 16 + 4 * C + 4 + 4 + 16 + 16 * nsv * n_wi  # mean, cop, feat, gid, thr, box, part
     return batch * per_gaussian + 4 * n_wi + 4                         # + wrote masks, max_last
 
 
@@ -261,9 +269,11 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     width, height = int(width), int(height)
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     C = int(features.shape[1])
-    q = rt.queue
-    res = RasterOut(cla.empty(q, (height, width, C), np.float32), cla.empty(q, (height, width), np.float32),
-                    cla.empty(q, (height, width), np.float32), cla.empty(q, (height, width), np.int32))
+    q, al = rt.queue, rt.pool()
+    res = RasterOut(cla.empty(q, (height, width, C), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.float32, allocator=al),
+                    cla.empty(q, (height, width), np.int32, allocator=al))
     if width == 0 or height == 0:
         return res
     tiles_x, _, gsize, lsize = _grid(width, height)
@@ -304,7 +314,7 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
     if N == 0:
         return None
     rec4 = 3 + (C + 3) // 4
-    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32)
+    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32, allocator=rt.pool())
     kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
     wg = 64
     rt.launch_1d(kp, N, wg, means2d.data, conic.data, opac.data, features.data,
@@ -321,8 +331,9 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     deterministic: None (default: per-group CAS adds, last-bit differences between runs) or a pair
     (rect [N,4] int32, offsets [N+1] int32), the rects and binning offsets the sorted list was built
     from (ops.binning.bin_gaussians): then the gradients are bit-identical from run to run
-    (per-entry terms stored at the entries' binning slots, summed per Gaussian in tile order;
-    needs M * (6 + C) floats of scratch).
+    (per-entry terms stored in sorted order, summed per Gaussian in its binning (tile) order through
+    the slot -> entry map rasterize_bwd_entry_of builds from rect and offsets; needs M * (7 + C)
+    words of scratch).
     choice: the variant to run, as in ``rasterize``.
     """
     import pyopencl.array as cla
@@ -330,18 +341,21 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     N, C = (int(s) for s in features.shape)
     assert v_out.shape == (height, width, C) and v_alpha.shape == (height, width)
-    q = rt.queue
-    grads = {"v_means2d": cla.zeros(q, (N, 2), np.float32), "v_conic": cla.zeros(q, (N, 3), np.float32),
-             "v_opac": cla.zeros(q, (N,), np.float32), "v_features": cla.zeros(q, (N, C), np.float32)}
+    q, al = rt.queue, rt.pool()
+    det = deterministic is not None
+    M = int(sorted_values.shape[0])
+    # the deterministic mode's gather writes every row (empty suffices) unless there is nothing
+    # to gather; the atomic mode accumulates into zeros
+    make = cla.empty if det and M > 0 and width > 0 and height > 0 else cla.zeros
+    grads = {"v_means2d": make(q, (N, 2), np.float32, allocator=al), "v_conic": make(q, (N, 3), np.float32, allocator=al),
+             "v_opac": make(q, (N,), np.float32, allocator=al), "v_features": make(q, (N, C), np.float32, allocator=al)}
     if N == 0 or width == 0 or height == 0:
         return grads
     tiles_x, _, gsize, lsize = _grid(width, height)
-    det = deterministic is not None
-    M = int(sorted_values.shape[0])
     if det and M == 0:
         return grads
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
-    v_entry = cla.zeros(q, (M, 6 + C), np.float32) if det else None   # [M, NV] in binning order
+    v_entry = cla.zeros(q, (M, 6 + C), np.float32, allocator=al) if det else None   # [M, NV] in binning order
     rect, offsets = deterministic if det else (None, None)
     if det:
         assert rect.shape == (N, 4) and rect.dtype == np.int32, (rect.shape, rect.dtype)
@@ -359,7 +373,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
                   np.int32(width), np.int32(height), np.int32(tiles_x),
                   raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
                   grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+                  _buf(rt, v_entry))
     else:
         _check_local(rt, bwd_local_bytes(C), "rasterize_bwd", C)
         k = rt.kernel("rasterize_bwd.cl", "rasterize_bwd", opts)
@@ -367,11 +381,19 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
                   tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
                   raster_out.T_final.data, raster_out.last.data, v_out.data, v_alpha.data,
                   grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data,
-                  _buf(rt, v_entry), _buf(rt, rect), _buf(rt, offsets))
+                  _buf(rt, v_entry))
     if det:
+        # the sorted entry of each binning slot, then per Gaussian the sum of its entries' terms in
+        # binning order (the same order as summing at the slots: the same bits)
+        entry_of = cla.empty(q, (M,), np.int32, allocator=al)
+        entry_of.fill(np.int32(-1))
+        n_tiles = int(tile_ranges.shape[0])
+        ke = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_entry_of", opts)
+        rt.launch_1d(ke, n_tiles, 64, _buf(rt, sorted_values), tile_ranges.data, np.int32(n_tiles),
+                     np.int32(tiles_x), rect.data, offsets.data, entry_of.data)
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        rt.launch_1d(kg, N, wg, v_entry.data, offsets.data, np.int32(N), grads["v_means2d"].data,
+        rt.launch_1d(kg, N, wg, v_entry.data, entry_of.data, offsets.data, np.int32(N), grads["v_means2d"].data,
                      grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 

@@ -7,7 +7,7 @@ The result equals numpy's ``argsort(kind='stable')`` order exactly.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -52,7 +52,16 @@ GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_
 
 
 def default_config(rt) -> SortConfig:
-    return GPU_CONFIG if rt.is_gpu else CPU_CONFIG
+    """CPU_CONFIG on devices without a reported SIMT width (DeviceCaps); else GPU_CONFIG with its
+    work-group size cut to what the device allows and its [digit, work-item] table to half the
+    local memory."""
+    caps = getattr(rt, "caps", None)
+    if caps is None or not caps.simt:
+        return CPU_CONFIG
+    wg = GPU_CONFIG.wg
+    while wg > 1 and (wg > caps.max_work_group_size or 4 * (1 << GPU_CONFIG.radix_bits) * wg > caps.local_mem_size // 2):
+        wg //= 2
+    return GPU_CONFIG if wg == GPU_CONFIG.wg else replace(GPU_CONFIG, wg=wg)
 
 
 def sort_passes(num_bits: int, radix_bits: int) -> int:
@@ -81,11 +90,12 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     items = cfg.items_for(n, rt.compute_units)
     n_blocks = -(-n // (cfg.wg * items))
     radix = 1 << cfg.radix_bits
-    hist = cla.empty(q, radix * n_blocks, np.int32)     # [radix, n_blocks]
-    offsets = cla.empty(q, radix * n_blocks, np.int32)  # [radix, n_blocks]
-    bufs = [(cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32))]
+    al = rt.pool()
+    hist = cla.empty(q, radix * n_blocks, np.int32, allocator=al)     # [radix, n_blocks]
+    offsets = cla.empty(q, radix * n_blocks, np.int32, allocator=al)  # [radix, n_blocks]
+    bufs = [(cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al))]
     if passes > 1:
-        bufs.append((cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32)))
+        bufs.append((cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al)))
 
     k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
     k_scatter = rt.kernel("sort.cl", "radix_scatter", cfg.options())
