@@ -41,6 +41,27 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
+
+
+def sh_basis_terms(x, y, z, degree: int) -> list:
+    """The real SH basis values of unit directions (x, y, z), each [N], degree 0..3, 3DGS order and
+    signs: a list of (degree+1)^2 arrays.  Plain arithmetic only, so numpy arrays and torch tensors
+    (the autograd reference, reference/project.py) both work; callers stack the list."""
+    out = [x * 0.0 + SH_C0]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
+                SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z,
+                SH_C3[2] * y * (4 * zz - xx - yy), SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3 * yy)]
+    return out
+
+
 PARAM_NAMES = ("means", "scales", "quat_l", "quat_r", "opacity", "sh", "phase")
 
 

@@ -183,23 +183,10 @@ def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, he
 
 
 def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
-    """reference/project.py's sh_basis in numpy (same constants, order and signs): unit directions
-    [N, 3] -> [N, (degree+1)^2].  The torch one is several times slower for one call on a CPU."""
-    from .gaussians import SH_C0, SH_C1, SH_C2, SH_C3
-    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
-    out = [np.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
-                SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z,
-                SH_C3[2] * y * (4 * zz - xx - yy), SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-                SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
-                SH_C3[6] * x * (xx - 3 * yy)]
-    return np.stack(out, -1)
+    """reference/project.py's sh_basis in numpy: unit directions [N, 3] -> [N, (degree+1)^2].  The
+    torch one is several times slower for one call on a CPU."""
+    from .gaussians import sh_basis_terms
+    return np.stack(sh_basis_terms(dirs[:, 0], dirs[:, 1], dirs[:, 2], degree), -1)
 
 
 # ---------------------------------------------------------------------------------------------

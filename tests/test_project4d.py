@@ -423,7 +423,7 @@ def test_teash_colour_by_hand(rt):
     # 3DGS real SH are Y_0 = C0, Y_2 = C1 z = C1, Y_6 = C2[2] (2 z^2) = 2 C2[2], Y_12 = C3[3] 2 z^3,
     # and every other basis is 0.  omega_n = 2 pi n / TEASH_PERIOD (= pi n with period 2).
     from endowave_cl.gaussians import TEASH_PERIOD
-    from endowave_cl.reference.project import SH_C0, SH_C1, SH_C2, SH_C3
+    from endowave_cl.gaussians import SH_C0, SH_C1, SH_C2, SH_C3
     g = xt_gaussian(0.0, 0.05, 0.5, np.array([0.0, 0.0, 2.0, 0.4]))
     g.sh[:] = 0.0
     g.sh[0, 0, 0] = [0.3, -0.2, -3.0]       # DC, blue clamps at 0

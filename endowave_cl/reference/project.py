@@ -24,7 +24,7 @@ from typing import Dict, Optional
 
 import torch
 
-from ..gaussians import MARGINAL_CULL, SH_C0, SH_C1, SH_C2, SH_C3, TEASH_PERIOD
+from ..gaussians import MARGINAL_CULL, TEASH_PERIOD, sh_basis_terms
 from ..layout import TILE, tile_grid
 
 LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
@@ -90,20 +90,7 @@ def conditional_mean(means: torch.Tensor, sigma: torch.Tensor, t: float) -> torc
 
 def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """Unit directions [N, 3] -> real SH basis values [N, (degree+1)^2] (3DGS order and signs)."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
-                SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z,
-                SH_C3[2] * y * (4 * zz - xx - yy), SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-                SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
-                SH_C3[6] * x * (xx - 3 * yy)]
-    return torch.stack(out, -1)
+    return torch.stack(sh_basis_terms(*dirs.unbind(-1), degree), -1)
 
 
 def teash_cosines(phase: torch.Tensor, t: float) -> torch.Tensor:
