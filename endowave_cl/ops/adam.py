@@ -22,7 +22,6 @@ import numpy as np
 
 from ..errors import EndowaveError
 from ..gaussians import PARAM_NAMES
-from ..runtime import round_up
 
 BETA1 = 0.9
 BETA2 = 0.999
@@ -92,11 +91,9 @@ class DeviceAdam:
 
     def __init__(self, rt, params: Dict[str, "object"], lrs: Mapping[str, float],
                  betas: Tuple[float, float] = (BETA1, BETA2), eps: float = ADAM_EPS):
-        import pyopencl as cl
         import pyopencl.array as cla
         self.rt = rt
         self._cla = cla
-        self._cl = cl
         self.betas = (float(betas[0]), float(betas[1]))
         self.eps = float(eps)
         self.lrs: Dict[str, float] = {k: float(v) for k, v in lrs.items()}
@@ -162,9 +159,7 @@ class DeviceAdam:
             return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
                  np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
-        k = self.rt.kernel("adam.cl", "adam_step")
-        k.set_args(*args)
-        self._cl.enqueue_nd_range_kernel(self.rt.queue, k, (round_up(runs, WORK_GROUP),), (WORK_GROUP,))
+        self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step"), runs, WORK_GROUP, *args)
 
     def reset_moments(self, name: str) -> None:
         """Zero one group's moments (3DGS does this for opacity at an opacity reset)."""
