@@ -51,6 +51,7 @@ def _launch(rt, kernel, total: int, *args) -> None:
 
 
 CONV_RUN = 8          # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN there)
+RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 
 
 def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1) -> None:
@@ -135,7 +136,7 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis", _resample_options(q)), n_out, inner, outer, x.data,
-                 out.data, np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner))
+                 out.data, np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner), run=RS_RUN)
     return out
 
 
@@ -155,7 +156,7 @@ def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         out = _empty(rt, shape)
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis_bwd", _resample_options(q)), n_in, inner, outer, v_out.data,
                  out.data, np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
-                 np.int32(bool(accumulate)))
+                 np.int32(bool(accumulate)), run=RS_RUN)
     return out
 
 
