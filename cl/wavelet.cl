@@ -261,6 +261,54 @@ __kernel void resample_axis_bwd(__global const float *v_out, __global float *v_i
     }
 }
 
+/* resample_axis and resample_axis_bwd for a short inner axis (the row passes of an image,
+ * inner = C < RS_RUN): work-item (i, o) computes the inner elements of one position i of line o,
+ * so that consecutive work-items are consecutive positions (no division by inner at all).  The
+ * same terms in the same order as the kernels above. */
+__kernel void resample_axis_rows(__global const float *in, __global float *out,
+                                 const int outer, const int n_in, const int n_out, const int inner) {
+    const int p = RP, q = RQ;
+    const int j = get_global_id(0);
+    const int o = get_global_id(1);
+    if (j >= n_out || o >= outer) return;
+    const int i0 = (j * p) / q;
+    const int r = (j * p) - i0 * q;
+    __global const float *src = in + ((size_t)o * n_in + i0) * inner;
+    __global float *dst = out + ((size_t)o * n_out + j) * inner;
+    const float w = (float)r / (float)q;
+    for (int k = 0; k < inner; ++k) {
+        float v = src[k];
+        if (r > 0) v = (1.0f - w) * v + w * src[inner + k];
+        dst[k] = v;
+    }
+}
+
+__kernel void resample_axis_bwd_rows(__global const float *v_out, __global float *v_in,
+                                     const int outer, const int n_in, const int n_out, const int inner,
+                                     const int accumulate) {
+    const int p = RP, q = RQ;
+    const int i = get_global_id(0);
+    const int o = get_global_id(1);
+    if (i >= n_in || o >= outer) return;
+    const int num_lo = (i - 1) * q + 1;
+    const int jlo = num_lo > 0 ? (num_lo + p - 1) / p : 0;
+    int jhi = ((i + 1) * q - 1) / p;
+    if (jhi > n_out - 1) jhi = n_out - 1;
+    __global const float *vo = v_out + (size_t)o * n_out * inner;
+    __global float *vi = v_in + ((size_t)o * n_in + i) * inner;
+    for (int k = 0; k < inner; ++k) {
+        float acc = 0.0f;
+        for (int t = 0; t < RS_JMAX; ++t) {
+            const int j = jlo + t;
+            if (j > jhi) break;
+            const float d = fabs((float)(j * p - i * q));
+            if (d < (float)q) acc += (((float)q - d) / (float)q) * vo[(size_t)j * inner + k];
+        }
+        if (accumulate) acc += vi[k];
+        vi[k] = acc;
+    }
+}
+
 /* d[p, c] = (a[p, c] - b[p, c]) * (has_mask ? mask[p] : 1).  a, b, d: [npix, C]; mask: [npix] */
 __kernel void masked_diff(__global const float *a, __global const float *b,
                           __global const float *mask, __global float *d,
