@@ -81,7 +81,8 @@ __kernel void conv_axis(__global const float *in, __global float *out,
     const int R = flen / 2;
     __global const float *in_o = in + (size_t)o * len;
     __global float *out_o = out + (size_t)o * len;
-    if (xi0 + CONV_RUN <= len && xi0 / inner - R >= 0 && (xi0 + CONV_RUN - 1) / inner + R < n) {
+    /* xi0 / inner >= R and (xi0 + CONV_RUN - 1) / inner < n - R, without the divisions */
+    if (xi0 + CONV_RUN <= len && xi0 >= R * inner && xi0 + CONV_RUN - 1 < (n - R) * inner) {
         /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
         store8(out_o + xi0, conv_run8(in_o + xi0, f, flen, -inner));
     } else {
@@ -143,7 +144,8 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
     const int R = flen / 2;
     __global const float *vo = v_out + (size_t)o * len;
     __global float *vi = v_in + (size_t)o * len;
-    if (yi0 + CONV_RUN <= len && yi0 / inner > R && (yi0 + CONV_RUN - 1) / inner < n - 1 - R) {
+    /* yi0 / inner > R and (yi0 + CONV_RUN - 1) / inner < n - 1 - R, without the divisions */
+    if (yi0 + CONV_RUN <= len && yi0 >= (R + 1) * inner && yi0 + CONV_RUN - 1 < (n - 1 - R) * inner) {
         /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
         float8 acc = conv_run8(vo + yi0, f, flen, inner);
         if (accumulate) acc += load8(vi + yi0);
