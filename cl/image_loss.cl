@@ -50,6 +50,7 @@ __kernel void ssim_stack(__global const float *feat,   /* [npix, CF] */
     if (p >= npix) return;
     const float m = mask[p];
     __global float *s = stack + (size_t)p * NMAP;
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
         s[c] = x;
@@ -67,11 +68,18 @@ __kernel void ssim_target_stack(__global const float *gt,     /* [npix, 3] */
     if (p >= npix) return;
     const float m = mask[p];
     __global float *s = stack + (size_t)p * NTMAP;
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         const float y = gt[p * 3 + c] * m;
         s[c] = y;
         s[3 + c] = y * y;
     }
+}
+
+/* |d| as a bit operation (fabs is an out-of-line call on PoCL, which keeps the work-item loop
+ * of the kernel from being vectorised); the same value as fabs. */
+inline float abs_bits(float d) {
+    return as_float(as_uint(d) & 0x7fffffffu);
 }
 
 inline float sign_of(float d) {
@@ -112,10 +120,12 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
         __global const float *tb = tblurred + (size_t)p * NTMAP;
         __global float *v = v_feat + (size_t)p * CF;
         __global float *g = g_ssim + (size_t)p * NGRAD;
+#pragma unroll
         for (int k = 0; k < CF; k++) v[k] = 0.0f;
-        for (int c = 0; c < 3; c++) {
+    #pragma unroll
+    for (int c = 0; c < 3; c++) {
             const float d = f[c] - gt[p * 3 + c];
-            sum[0] += fabs(d) * m;
+            sum[0] += abs_bits(d) * m;
             sum[4] += d * d * m;
             v[c] = w_l1 * sign_of(d) * m;
             const float mx = b[c], my = tb[c], exx = b[3 + c], eyy = tb[3 + c], exy = b[6 + c];
@@ -133,7 +143,7 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
         if (has_depth) {
             const float w = depth_w[p];
             const float d = f[CH_DEPTH] - depth_gt[p];
-            sum[2] += fabs(d) * w;
+            sum[2] += abs_bits(d) * w;
             v[CH_DEPTH] = w_depth * sign_of(d) * w;
         }
         if (has_flow) {   /* |e|^2, continued as 2 delta |e| - delta^2 beyond |e| = delta (Huber) */
@@ -177,15 +187,13 @@ __kernel void ssim_grad_combine(__global const float *feat,   /* [npix, CF] */
     const int p = get_global_id(0);
     if (p >= npix) return;
     const float m = mask[p];
+    const float mw = has_mask ? m : 1.0f;   /* the wavelet gradient's mask factor (x 1 is exact) */
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
         const __global float *q = gb + (size_t)p * NGRAD;
         float v = v_feat[(size_t)p * CF + c] + m * (q[c] + 2.0f * x * q[3 + c] + y * q[6 + c]);
-        if (use_wavelet) {
-            float w = v_rgb[p * 3 + c];
-            if (has_mask) w *= m;
-            v += w_wavelet * w;
-        }
+        if (use_wavelet) v += w_wavelet * (v_rgb[p * 3 + c] * mw);
         v_feat[(size_t)p * CF + c] = v;
     }
 }
@@ -197,6 +205,7 @@ __kernel void rgb_masked_diff(__global const float *feat, __global const float *
                               __global float *d) {
     const int p = get_global_id(0);
     if (p >= npix) return;
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         float v = feat[(size_t)p * CF + c] - gt[p * 3 + c];
         if (has_mask) v *= mask[p];
