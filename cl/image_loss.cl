@@ -9,11 +9,14 @@
  * without a tool mask), depth_w = (gt depth > 0) * mask, flow_w = consistency mask * mask.
  *
  * SSIM (3DGS's: 11 x 11 Gaussian window, zero padding, C1 = 0.01^2, C2 = 0.03^2) runs as
- *   ssim_stack  -> five maps of the masked colours (x m, y m, (x m)^2, (y m)^2, x m y m), 15 ch.
+ *   ssim_target_stack -> the target's two maps (y m, (y m)^2), 6 ch., blurred once per frame
+ *                        when the targets are uploaded (they do not change between steps)
+ *   ssim_stack  -> the three maps that involve the render (x m, (x m)^2, x m y m), 9 ch.
  *   blur        -> conv_axis (cl/wavelet.cl) along W then H with border "zero"
  *   image_loss_terms -> per-pixel loss sums and gradients; dL/d(mu_x, E[xx], E[xy]) per channel
  *   blur adjoint     -> the same convolutions with the reversed window
- *   ssim_grad_combine -> back through the five maps to the colour channels.
+ *   ssim_grad_combine -> back through the three maps to the colour channels (and the wavelet
+ *                        term's colour gradient added in the same pass).
  * With S = A1 A2 / (B1 B2), A1 = 2 mx my + C1, A2 = 2 sxy + C2, B1 = mx^2 + my^2 + C1,
  * B2 = sxx + syy + C2 (sxx = exx - mx^2, syy = eyy - my^2, sxy = exy - mx my):
  *   dS/dmx = 2 my (A2 - A1) / (B1 B2) - 2 mx S (B2 - B1) / (B1 B2)
@@ -32,11 +35,12 @@
 #endif
 #define SSIM_C1 (0.01f * 0.01f)
 #define SSIM_C2 (0.03f * 0.03f)
-#define NMAP 15          /* ssim_stack channels: 5 maps x 3 colours, map-major */
+#define NMAP 9           /* ssim_stack channels: 3 maps (x m, (x m)^2, x m y m) x 3 colours, map-major */
+#define NTMAP 6          /* ssim_target_stack channels: 2 maps (y m, (y m)^2) x 3 colours */
 #define NGRAD 9          /* SSIM gradient maps: d/d mu_x, d/d E[xx], d/d E[xy], x 3 colours */
 #define NSUM 5           /* partial sums: |x - y| m, S m, |d - d_gt| w, Huber(|f - f_gt|) w, (x - y)^2 m */
 
-/* stack[p, map * 3 + c] for the five SSIM maps of the masked colours. */
+/* stack[p, map * 3 + c] for the three SSIM maps of the masked colours that involve the render. */
 __kernel void ssim_stack(__global const float *feat,   /* [npix, CF] */
                          __global const float *gt,     /* [npix, 3] */
                          __global const float *mask,   /* [npix] */
@@ -46,14 +50,36 @@ __kernel void ssim_stack(__global const float *feat,   /* [npix, CF] */
     if (p >= npix) return;
     const float m = mask[p];
     __global float *s = stack + (size_t)p * NMAP;
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
         s[c] = x;
-        s[3 + c] = y;
-        s[6 + c] = x * x;
-        s[9 + c] = y * y;
-        s[12 + c] = x * y;
+        s[3 + c] = x * x;
+        s[6 + c] = x * y;
     }
+}
+
+/* stack[p, map * 3 + c] for the target's two SSIM maps (y m, (y m)^2): per frame, not per step. */
+__kernel void ssim_target_stack(__global const float *gt,     /* [npix, 3] */
+                                __global const float *mask,   /* [npix] */
+                                const int npix,
+                                __global float *stack) {      /* [npix, NTMAP] */
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    const float m = mask[p];
+    __global float *s = stack + (size_t)p * NTMAP;
+#pragma unroll
+    for (int c = 0; c < 3; c++) {
+        const float y = gt[p * 3 + c] * m;
+        s[c] = y;
+        s[3 + c] = y * y;
+    }
+}
+
+/* |d| as a bit operation (fabs is an out-of-line call on PoCL, which keeps the work-item loop
+ * of the kernel from being vectorised); the same value as fabs. */
+inline float abs_bits(float d) {
+    return as_float(as_uint(d) & 0x7fffffffu);
 }
 
 inline float sign_of(float d) {
@@ -71,6 +97,7 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
                                __global const float *gt,       /* [npix, 3] */
                                __global const float *mask,     /* [npix] */
                                __global const float *blurred,  /* [npix, NMAP] */
+                               __global const float *tblurred, /* [npix, NTMAP]: the target's, per frame */
                                __global const float *depth_gt, /* [npix] */
                                __global const float *depth_w,  /* [npix] */
                                __global const float *flow_gt,  /* [npix, 2] */
@@ -90,15 +117,18 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
         const float m = mask[p];
         __global const float *f = feat + (size_t)p * CF;
         __global const float *b = blurred + (size_t)p * NMAP;
+        __global const float *tb = tblurred + (size_t)p * NTMAP;
         __global float *v = v_feat + (size_t)p * CF;
         __global float *g = g_ssim + (size_t)p * NGRAD;
+#pragma unroll
         for (int k = 0; k < CF; k++) v[k] = 0.0f;
-        for (int c = 0; c < 3; c++) {
+    #pragma unroll
+    for (int c = 0; c < 3; c++) {
             const float d = f[c] - gt[p * 3 + c];
-            sum[0] += fabs(d) * m;
+            sum[0] += abs_bits(d) * m;
             sum[4] += d * d * m;
             v[c] = w_l1 * sign_of(d) * m;
-            const float mx = b[c], my = b[3 + c], exx = b[6 + c], eyy = b[9 + c], exy = b[12 + c];
+            const float mx = b[c], my = tb[c], exx = b[3 + c], eyy = tb[3 + c], exy = b[6 + c];
             const float sxx = exx - mx * mx, syy = eyy - my * my, sxy = exy - mx * my;
             const float A1 = 2.0f * mx * my + SSIM_C1, A2 = 2.0f * sxy + SSIM_C2;
             const float B1 = mx * mx + my * my + SSIM_C1, B2 = sxx + syy + SSIM_C2;
@@ -113,7 +143,7 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
         if (has_depth) {
             const float w = depth_w[p];
             const float d = f[CH_DEPTH] - depth_gt[p];
-            sum[2] += fabs(d) * w;
+            sum[2] += abs_bits(d) * w;
             v[CH_DEPTH] = w_depth * sign_of(d) * w;
         }
         if (has_flow) {   /* |e|^2, continued as 2 delta |e| - delta^2 beyond |e| = delta (Huber) */
@@ -143,34 +173,42 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
 }
 
 /* v_feat[p, c] += m (gb_mu + 2 x m gb_xx + y m gb_xy) for the colours: the SSIM gradient through
- * the maps of ssim_stack; gb = the blur adjoint of g_ssim. */
+ * the maps of ssim_stack; gb = the blur adjoint of g_ssim.  With use_wavelet, then
+ * v_feat[p, c] += w_wavelet * (v_rgb[p, c] (x m when has_mask)): the wavelet term's gradient
+ * (v_rgb: the adjoint transform of its cotangents, not yet masked), in the same pass. */
 __kernel void ssim_grad_combine(__global const float *feat,   /* [npix, CF] */
                                 __global const float *gt,     /* [npix, 3] */
                                 __global const float *mask,   /* [npix] */
                                 __global const float *gb,     /* [npix, NGRAD] */
                                 const int npix,
-                                __global float *v_feat) {     /* [npix, CF] */
+                                __global float *v_feat,       /* [npix, CF] */
+                                const int use_wavelet, const int has_mask, const float w_wavelet,
+                                __global const float *v_rgb) { /* [npix, 3] */
     const int p = get_global_id(0);
     if (p >= npix) return;
     const float m = mask[p];
+    const float mw = has_mask ? m : 1.0f;   /* the wavelet gradient's mask factor (x 1 is exact) */
+#pragma unroll
     for (int c = 0; c < 3; c++) {
         const float x = feat[(size_t)p * CF + c] * m, y = gt[p * 3 + c] * m;
         const __global float *q = gb + (size_t)p * NGRAD;
-        v_feat[(size_t)p * CF + c] += m * (q[c] + 2.0f * x * q[3 + c] + y * q[6 + c]);
+        float v = v_feat[(size_t)p * CF + c] + m * (q[c] + 2.0f * x * q[3 + c] + y * q[6 + c]);
+        if (use_wavelet) v += w_wavelet * (v_rgb[p * 3 + c] * mw);
+        v_feat[(size_t)p * CF + c] = v;
     }
 }
 
-/* out[p, k] = feat[p, k] for k < 3: the colour channels as a contiguous [npix, 3] image. */
-__kernel void take_rgb(__global const float *feat, const int npix, __global float *out) {
+/* d[p, c] = (feat[p, c] - gt[p, c]) (x mask[p] when has_mask) for c < 3: the masked colour
+ * difference the wavelet loss transforms (wavelet.cl masked_diff of the colour channels). */
+__kernel void rgb_masked_diff(__global const float *feat, __global const float *gt,
+                              __global const float *mask, const int has_mask, const int npix,
+                              __global float *d) {
     const int p = get_global_id(0);
     if (p >= npix) return;
-    for (int c = 0; c < 3; c++) out[p * 3 + c] = feat[(size_t)p * CF + c];
-}
-
-/* v_feat[p, k] += scale * v_rgb[p, k] for k < 3. */
-__kernel void add_rgb(__global float *v_feat, __global const float *v_rgb, const float scale,
-                      const int npix) {
-    const int p = get_global_id(0);
-    if (p >= npix) return;
-    for (int c = 0; c < 3; c++) v_feat[(size_t)p * CF + c] += scale * v_rgb[p * 3 + c];
+#pragma unroll
+    for (int c = 0; c < 3; c++) {
+        float v = feat[(size_t)p * CF + c] - gt[p * 3 + c];
+        if (has_mask) v *= mask[p];
+        d[p * 3 + c] = v;
+    }
 }

@@ -81,7 +81,8 @@ __kernel void conv_axis(__global const float *in, __global float *out,
     const int R = flen / 2;
     __global const float *in_o = in + (size_t)o * len;
     __global float *out_o = out + (size_t)o * len;
-    if (xi0 + CONV_RUN <= len && xi0 / inner - R >= 0 && (xi0 + CONV_RUN - 1) / inner + R < n) {
+    /* xi0 / inner >= R and (xi0 + CONV_RUN - 1) / inner < n - R, without the divisions */
+    if (xi0 + CONV_RUN <= len && xi0 >= R * inner && xi0 + CONV_RUN - 1 < (n - R) * inner) {
         /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
         store8(out_o + xi0, conv_run8(in_o + xi0, f, flen, -inner));
     } else {
@@ -143,7 +144,8 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
     const int R = flen / 2;
     __global const float *vo = v_out + (size_t)o * len;
     __global float *vi = v_in + (size_t)o * len;
-    if (yi0 + CONV_RUN <= len && yi0 / inner > R && (yi0 + CONV_RUN - 1) / inner < n - 1 - R) {
+    /* yi0 / inner > R and (yi0 + CONV_RUN - 1) / inner < n - 1 - R, without the divisions */
+    if (yi0 + CONV_RUN <= len && yi0 >= (R + 1) * inner && yi0 + CONV_RUN - 1 < (n - 1 - R) * inner) {
         /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
         float8 acc = conv_run8(vo + yi0, f, flen, inner);
         if (accumulate) acc += load8(vi + yi0);
@@ -159,55 +161,154 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
     }
 }
 
+/* The resampling kernels also compute RS_RUN = 8 consecutive flat elements (j * inner + k) of a
+ * line per work-item: one integer division by inner per run instead of two per element (a scalar
+ * idiv each on PoCL), and, when the run stays in one j (the column passes, inner = W C), one
+ * 8-wide load per source sample.  Same terms in the same order as one element per work-item. */
+#define RS_RUN 8
+/* The most source samples j with |j p - i q| < q for one i: the adjoint's fixed loop count. */
+#define RS_JMAX ((2 * RQ - 2) / RP + 1)
+
+/* Output sample j of the resampling interpolates input samples i0 and i0 + 1 with weight r / q:
+ * j p = i0 q + r, 0 <= r < q.  Returns i0, sets *r. */
+inline int rs_source(int j, int *r) {
+    const int i0 = (j * RP) / RQ;
+    *r = j * RP - i0 * RQ;
+    return i0;
+}
+
+/* The output samples j that input sample i feeds (|j p - i q| < q), clamped to [0, n_out). */
+inline int2 rs_targets(int i, int n_out) {
+    const int num_lo = (i - 1) * RQ + 1;
+    const int jlo = num_lo > 0 ? (num_lo + RP - 1) / RP : 0;
+    const int jhi = ((i + 1) * RQ - 1) / RP;
+    return (int2)(jlo, jhi < n_out - 1 ? jhi : n_out - 1);
+}
+
+/* The weight of output sample j in input sample i's adjoint, 0 when j is not one of its targets:
+ * max(0, 1 - |j p - i q| / q).  |j p - i q| in float (exact for these small integers): the
+ * integer abs is an out-of-line call on PoCL, and Oclgrind lacks the llvm.abs intrinsic it becomes. */
+#define RS_WEIGHT_OK(j, i) (fabs((float)((j) * RP - (i) * RQ)) < (float)RQ)
+#define RS_WEIGHT(j, i) (((float)RQ - fabs((float)((j) * RP - (i) * RQ))) / (float)RQ)
+
 /* Rational resampling by a = p / q = RP / RQ (linear interpolation at n_out * p / q):
  * out[o, j, k] = ((q - r) in[o, i0, k] + r in[o, i0 + 1, k]) / q,  j p = i0 q + r, 0 <= r < q.
- * in: [outer, n_in, inner]; out: [outer, n_out, inner], n_out = (n_in - 1) q / p + 1. */
+ * in: [outer, n_in, inner]; out: [outer, n_out, inner], n_out = (n_in - 1) q / p + 1.
+ * Work-item (t, o) computes the flat elements t * RS_RUN ... t * RS_RUN + RS_RUN - 1 of line o. */
 __kernel void resample_axis(__global const float *in, __global float *out,
                             const int outer, const int n_in, const int n_out, const int inner) {
-    const int p = RP, q = RQ;
-    const int xi = get_global_id(0);            /* j * inner + k */
     const int o = get_global_id(1);
-    if (xi >= n_out * inner || o >= outer) return;
-    const int k = xi % inner;
-    const int j = xi / inner;
-    const size_t gid = (size_t)o * n_out * inner + xi;
-    const int i0 = (j * p) / q;
-    const int r = (j * p) - i0 * q;
-    __global const float *line = in + (size_t)o * n_in * inner + k;
-    float v = line[(size_t)i0 * inner];
-    if (r > 0) {  /* then i0 + 1 <= n_in - 1 because j p / q <= n_in - 1 */
-        const float w = (float)r / (float)q;
-        v = (1.0f - w) * v + w * line[(size_t)(i0 + 1) * inner];
+    const int xi0 = get_global_id(0) * RS_RUN;  /* first j * inner + k of this work-item */
+    if (xi0 >= n_out * inner || o >= outer) return;
+    __global const float *in_o = in + (size_t)o * n_in * inner;
+    __global float *out_o = out + (size_t)o * n_out * inner;
+    int j = xi0 / inner, r;
+    int k = xi0 - j * inner;
+    const int end = min(xi0 + RS_RUN, n_out * inner);
+    if (end - xi0 == RS_RUN && k + RS_RUN <= inner) {   /* one j for the whole run */
+        const int i0 = rs_source(j, &r);
+        float8 v = load8(in_o + (size_t)i0 * inner + k);
+        if (r > 0) {
+            const float w = (float)r / (float)RQ;
+            v = (1.0f - w) * v + w * load8(in_o + (size_t)(i0 + 1) * inner + k);
+        }
+        store8(out_o + xi0, v);
+        return;
     }
-    out[gid] = v;
+    for (int xi = xi0; xi < end; ++xi) {
+        const int i0 = rs_source(j, &r);
+        __global const float *line = in_o + k;
+        float v = line[(size_t)i0 * inner];
+        if (r > 0) {  /* then i0 + 1 <= n_in - 1 because j p / q <= n_in - 1 */
+            const float w = (float)r / (float)RQ;
+            v = (1.0f - w) * v + w * line[(size_t)(i0 + 1) * inner];
+        }
+        out_o[xi] = v;
+        if (++k == inner) { k = 0; ++j; }
+    }
 }
 
 /* Adjoint of resample_axis: v_in[o, i, k] (+)= sum_j max(0, 1 - |j p - i q| / q) v_out[o, j, k],
- * over the j with |j p - i q| < q, i.e. ceil(((i - 1) q + 1) / p) <= j <= floor(((i + 1) q - 1) / p). */
+ * over the j with |j p - i q| < q, i.e. ceil(((i - 1) q + 1) / p) <= j <= floor(((i + 1) q - 1) / p)
+ * (at most RS_JMAX of them, in increasing j).  Work-item (t, o): RS_RUN flat elements i * inner + k. */
 __kernel void resample_axis_bwd(__global const float *v_out, __global float *v_in,
                               const int outer, const int n_in, const int n_out, const int inner,
                               const int accumulate) {
-    const int p = RP, q = RQ;
-    const int xi = get_global_id(0);            /* i * inner + k */
     const int o = get_global_id(1);
-    if (xi >= n_in * inner || o >= outer) return;
-    const int k = xi % inner;
-    const int i = xi / inner;
-    const size_t gid = (size_t)o * n_in * inner + xi;
-    const int num_lo = (i - 1) * q + 1;
-    int jlo = num_lo > 0 ? (num_lo + p - 1) / p : 0;
-    int jhi = ((i + 1) * q - 1) / p;
-    if (jhi > n_out - 1) jhi = n_out - 1;
-    __global const float *line = v_out + (size_t)o * n_out * inner + k;
-    float acc = 0.0f;
-    for (int j = jlo; j <= jhi; ++j) {
-        /* |j p - i q| in float (exact for these small integers): the integer abs is an
-         * out-of-line call on PoCL, and Oclgrind lacks the llvm.abs intrinsic it becomes */
-        const float d = fabs((float)(j * p - i * q));
-        if (d < (float)q) acc += (((float)q - d) / (float)q) * line[(size_t)j * inner];
+    const int yi0 = get_global_id(0) * RS_RUN;  /* first i * inner + k of this work-item */
+    const int len = n_in * inner;
+    if (yi0 >= len || o >= outer) return;
+    __global const float *vo = v_out + (size_t)o * n_out * inner;
+    __global float *vi = v_in + (size_t)o * len;
+    int i = yi0 / inner;
+    int k = yi0 - i * inner;
+    if (yi0 + RS_RUN <= len && k + RS_RUN <= inner) {   /* one i for the whole run */
+        const int2 jr = rs_targets(i, n_out);
+        float8 acc = (float8)(0.0f);
+        for (int t = 0; t < RS_JMAX; ++t) {
+            const int j = jr.s0 + t;
+            if (j > jr.s1) break;
+            if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * load8(vo + (size_t)j * inner + k);
+        }
+        if (accumulate) acc += load8(vi + yi0);
+        store8(vi + yi0, acc);
+        return;
     }
-    if (accumulate) acc += v_in[gid];
-    v_in[gid] = acc;
+    const int end = yi0 + RS_RUN < len ? yi0 + RS_RUN : len;
+    for (int yi = yi0; yi < end; ++yi) {
+        const int2 jr = rs_targets(i, n_out);
+        float acc = 0.0f;
+        for (int t = 0; t < RS_JMAX; ++t) {
+            const int j = jr.s0 + t;
+            if (j > jr.s1) break;
+            if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * inner + k];
+        }
+        if (accumulate) acc += vi[yi];
+        vi[yi] = acc;
+        if (++k == inner) { k = 0; ++i; }
+    }
+}
+
+/* resample_axis and resample_axis_bwd for a short inner axis (the row passes of an image,
+ * inner = C < RS_RUN): work-item (i, o) computes the inner elements of one position i of line o,
+ * so that consecutive work-items are consecutive positions (no division by inner at all).  The
+ * same terms in the same order as the kernels above. */
+__kernel void resample_axis_rows(__global const float *in, __global float *out,
+                                 const int outer, const int n_in, const int n_out, const int inner) {
+    const int j = get_global_id(0);
+    const int o = get_global_id(1);
+    if (j >= n_out || o >= outer) return;
+    int r;
+    const int i0 = rs_source(j, &r);
+    __global const float *src = in + ((size_t)o * n_in + i0) * inner;
+    __global float *dst = out + ((size_t)o * n_out + j) * inner;
+    const float w = (float)r / (float)RQ;
+    for (int k = 0; k < inner; ++k) {
+        float v = src[k];
+        if (r > 0) v = (1.0f - w) * v + w * src[inner + k];
+        dst[k] = v;
+    }
+}
+
+__kernel void resample_axis_bwd_rows(__global const float *v_out, __global float *v_in,
+                                     const int outer, const int n_in, const int n_out, const int inner,
+                                     const int accumulate) {
+    const int i = get_global_id(0);
+    const int o = get_global_id(1);
+    if (i >= n_in || o >= outer) return;
+    const int2 jr = rs_targets(i, n_out);
+    __global const float *vo = v_out + (size_t)o * n_out * inner;
+    __global float *vi = v_in + ((size_t)o * n_in + i) * inner;
+    for (int k = 0; k < inner; ++k) {
+        float acc = 0.0f;
+        for (int t = 0; t < RS_JMAX; ++t) {
+            const int j = jr.s0 + t;
+            if (j > jr.s1) break;
+            if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * inner + k];
+        }
+        if (accumulate) acc += vi[k];
+        vi[k] = acc;
+    }
 }
 
 /* d[p, c] = (a[p, c] - b[p, c]) * (has_mask ? mask[p] : 1).  a, b, d: [npix, C]; mask: [npix] */

@@ -66,8 +66,11 @@ def test_device_losses_match_torch(rt, case, size, delta):
         assert not got[f["mask"] == 0].any()
 
 
-def test_device_losses_add_the_wavelet_term(rt):
-    f, feats = frame(7, 33, 40)
+@pytest.mark.parametrize("mask", [True, False])
+def test_device_losses_add_the_wavelet_term(rt, mask):
+    # the wavelet term's difference and masked gradient are fused into the image-loss kernels
+    # (rgb_masked_diff, ssim_grad_combine): the same as the standalone wavelet loss, with and without a mask
+    f, feats = frame(7, 33, 40, mask=mask)
     cfg = TrainConfig()
     wcfg = WaveletConfig()
     tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
@@ -75,7 +78,7 @@ def test_device_losses_add_the_wavelet_term(rt):
     t0, p0, v0 = image_losses_and_grad(rt, dev, tgt, TrainConfig(use_wavelet=False), CHANNELS)
     t1, p1, v1 = image_losses_and_grad(rt, dev, tgt, cfg, CHANNELS, wavelet_config=wcfg)
     wl, v_rgb = wavelet_loss_and_grad(rt, cla.to_device(rt.queue, np.ascontiguousarray(feats[..., :3])),
-                                      tgt.image, tgt.mask, wcfg)
+                                      tgt.image, tgt.mask if mask else None, wcfg)
     assert p1["wavelet"] == pytest.approx(wl, rel=1e-6)
     assert t1 == pytest.approx(t0 + cfg.lambda_wavelet * wl, rel=1e-6)
     want = v0.get()

@@ -90,8 +90,11 @@ def test_adjoints_accumulate(rt):
 
 
 @pytest.mark.parametrize("q", [1, 2, 3, 5])
-@pytest.mark.parametrize("shape,axis", [((1, 3), 1), ((2, 7), 1), ((11, 4, 3), 0), ((11, 10, 3), 1), ((40, 2), 0)])
+@pytest.mark.parametrize("shape,axis", [((1, 3), 1), ((2, 7), 1), ((11, 4, 3), 0), ((11, 10, 3), 1), ((40, 2), 0),
+                                        ((9, 20, 3), 0), ((3, 7, 17), 1), ((13, 3, 9), 1)])
 def test_resample_matches_reference_and_adjoint(rt, q, shape, axis):
+    # inner < 8 (image rows): the one-position-per-work-item kernels; inner >= 8 (columns): the
+    # 8-element runs, in one sample (8-wide loads) or across samples
     x = rand(shape, q)
     got = ops.resample_axis(rt, dev(rt, x), q, axis).get()
     ref = F.resample_axis(x, q, axis)

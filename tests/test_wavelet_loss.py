@@ -203,3 +203,17 @@ def test_oclgrind_conv_interior_runs(rt):
         out = dev(rt, x)
         ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
+
+
+@pytest.mark.oclgrind
+def test_oclgrind_resample_runs_and_rows(rt):
+    # both resampling layouts (short inner axis: a work-item per position; long: 8-element runs,
+    # 8-wide in one sample) and their adjoints, accumulating, with a length not a multiple of 8
+    for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0), ((7, 4, 13), 0)):
+        x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
+        rs = ops.resample_axis(rt, dev(rt, x), 2, axis).get()
+        np.testing.assert_allclose(rs, F.resample_axis(x, 2, axis), atol=1e-6)
+        y = np.random.default_rng(axis + 5).standard_normal(rs.shape).astype(np.float32)
+        out = dev(rt, x)
+        ATy = ops.resample_axis_bwd(rt, dev(rt, y), 2, axis, shape[axis], out=out, accumulate=True).get() - x
+        assert float(np.sum(rs * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)

@@ -5,13 +5,14 @@ doc gives the definitions and choices) computes, plus the rational-wavelet term,
 feature image that stays on the device, and returns the gradient image for the adjoints: nothing
 but a handful of loss sums crosses to the host.
 
-    feat [H, W, CF] --ssim_stack--> maps [H, W, 15] --blur W, H--> blurred
+    feat [H, W, CF] --ssim_stack--> maps [H, W, 9] --blur W, H--> blurred
           |                                                            |
-          +------------------- image_loss_terms <----------------------+
-                  |  v_feat (L1, depth, flow)    g_ssim [H, W, 9]
-                  |                                 |  blur adjoint (reversed window)
+          +------------------- image_loss_terms <----------------------+ <-- target's blurred maps
+                  |  v_feat (L1, depth, flow)    g_ssim [H, W, 9]            [H, W, 6] (per frame,
+                  |                                 |  blur adjoint          prepare_targets)
                   +------ ssim_grad_combine <-------+
-                  +------ + lambda_wavelet * v_rgb (wavelet.loss_and_grad on take_rgb(feat))
+                          + lambda_wavelet * m * v_rgb (wavelet.diff_loss_and_grad_deferred
+                            on rgb_masked_diff(feat, target)), in the same pass
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from ..loss_constants import gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
-NMAP, NGRAD, NSUM = 15, 9, 5   # as in cl/image_loss.cl
+NMAP, NTMAP, NGRAD, NSUM = 9, 6, 9, 5   # as in cl/image_loss.cl
 
 
 @dataclass
@@ -41,6 +42,7 @@ class DeviceTargets:
     flow: Optional[object]        # cla [H, W, 2] or None
     flow_w: Optional[object]      # cla [H, W]: consistency mask * mask
     n_flow: float
+    ssim_target: Optional[object] = None   # cla [H, W, NTMAP]: the blurred (y m, (y m)^2), per frame
 
 
 def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
@@ -61,7 +63,24 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     if flow is not None:
         fw = m if flow_valid is None else np.asarray(flow_valid, np.float32) * m
         t.flow, t.flow_w, t.n_flow = up(flow), up(fw), max(float(fw.sum(dtype=np.float64)), 1.0)
+    t.ssim_target = _ssim_target(rt, t.image, t.mask)
     return t
+
+
+def _ssim_target(rt, image, mask) -> object:
+    """The target's SSIM maps (y m, (y m)^2) blurred: they do not depend on the render, so they are
+    made once per frame here instead of in every step."""
+    import pyopencl.array as cla
+    H, W = (int(s) for s in image.shape[:2])
+    npix = H * W
+    stack = cla.empty(rt.queue, (H, W, NTMAP), np.float32)
+    rt.launch(rt.kernel(KFILE, "ssim_target_stack"), (round_up(max(npix, 1), LOCAL),), (LOCAL,), image.data,
+              mask.data, np.int32(npix), stack.data)
+    window = _window(rt)
+    from ..wavelet.ops import conv_axis
+    tmp = conv_axis(rt, stack, window, axis=1, border="zero")
+    out = cla.empty(rt.queue, (H, W, NTMAP), np.float32)   # own buffer, not the pool's: kept for the run
+    return conv_axis(rt, tmp, window, axis=0, out=out, border="zero")
 
 
 def _window(rt) -> object:
@@ -123,19 +142,19 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     window = _window(rt)
     gsize = (round_up(max(npix, 1), LOCAL),)
 
-    maps = cla.empty(q, (H, W, NMAP), np.float32)
+    maps = cla.empty(q, (H, W, NMAP), np.float32, allocator=rt.pool())
     rt.launch(rt.kernel(KFILE, "ssim_stack", opts), gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
               np.int32(npix), maps.data)
     blurred = _blur(rt, maps, window)
 
-    v = cla.empty(q, (H, W, CF), np.float32)
-    g_ssim = cla.empty(q, (H, W, NGRAD), np.float32)
+    v = cla.empty(q, (H, W, CF), np.float32, allocator=rt.pool())
+    g_ssim = cla.empty(q, (H, W, NGRAD), np.float32, allocator=rt.pool())
     groups = gsize[0] // LOCAL
-    partial = cla.empty(q, (groups, NSUM), np.float32)
+    partial = cla.empty(q, (groups, NSUM), np.float32, allocator=rt.pool())
     w_rgb = cfg.lambda_rgb / tgt.n_rgb
     dummy = tgt.mask.data
     rt.kernel(KFILE, "image_loss_terms", opts)(
-        q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data, blurred.data,
+        q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data, blurred.data, tgt.ssim_target.data,
         tgt.depth.data if use_depth else dummy, tgt.depth_w.data if use_depth else dummy,
         tgt.flow.data if use_flow else dummy, tgt.flow_w.data if use_flow else dummy,
         np.int32(use_depth), np.int32(use_flow),
@@ -144,20 +163,21 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
         np.float32(cfg.flow_huber_delta), np.int32(npix),
         v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
     gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
-    rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,
-              tgt.mask.data, gb.data, np.int32(npix), v.data)
 
     sums = {"image": partial}
     wavelet_finish = None
+    v_rgb = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
-        from ..wavelet.ops import loss_and_grad_deferred
-        rgb = cla.empty(q, (H, W, 3), np.float32)
-        rt.launch(rt.kernel(KFILE, "take_rgb", opts), gsize, (LOCAL,), features.data, np.int32(npix), rgb.data)
-        sums["wavelet"], wavelet_finish, v_rgb = loss_and_grad_deferred(
-            rt, rgb, tgt.image, tgt.mask if tgt.has_mask else None, wavelet_config.q, wavelet_config.levels,
-            wavelet_config.weights)
-        rt.launch(rt.kernel(KFILE, "add_rgb", opts), gsize, (LOCAL,), v.data, v_rgb.data,
-                  np.float32(cfg.lambda_wavelet), np.int32(npix))
+        from ..wavelet.ops import diff_loss_and_grad_deferred
+        d = cla.empty(q, (H, W, 3), np.float32, allocator=rt.pool())
+        rt.launch(rt.kernel(KFILE, "rgb_masked_diff", opts), gsize, (LOCAL,), features.data, tgt.image.data,
+                  tgt.mask.data, np.int32(tgt.has_mask), np.int32(npix), d.data)
+        sums["wavelet"], wavelet_finish, v_rgb = diff_loss_and_grad_deferred(
+            rt, d, wavelet_config.q, wavelet_config.levels, wavelet_config.weights)
+    # the SSIM gradient through the maps, and lambda_wavelet * m * v_rgb, into v
+    rt.launch(rt.kernel(KFILE, "ssim_grad_combine", opts), gsize, (LOCAL,), features.data, tgt.image.data,
+              tgt.mask.data, gb.data, np.int32(npix), v.data, np.int32(v_rgb is not None), np.int32(tgt.has_mask),
+              np.float32(cfg.lambda_wavelet), rt.buf(v_rgb))
 
     def finish(host: Dict[str, np.ndarray]) -> Tuple[float, Dict[str, float]]:
         s = host["image"].astype(np.float64).sum(axis=0)   # [NSUM]

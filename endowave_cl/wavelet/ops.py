@@ -51,6 +51,7 @@ def _launch(rt, kernel, total: int, *args) -> None:
 
 
 CONV_RUN = 8          # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN there)
+RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 
 
 def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1) -> None:
@@ -134,8 +135,13 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     shape = list(x.shape)
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
+    if inner < RS_RUN:   # short inner axis (an image's rows): one work-item per position
+        rt.launch(rt.kernel(KFILE, "resample_axis_rows", _resample_options(q)),
+                  (round_up(max(n_out, 1), GROUP), max(outer, 1)), None, x.data, out.data, np.int32(outer),
+                  np.int32(n), np.int32(n_out), np.int32(inner))
+        return out
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis", _resample_options(q)), n_out, inner, outer, x.data,
-                 out.data, np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner))
+                 out.data, np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner), run=RS_RUN)
     return out
 
 
@@ -153,9 +159,14 @@ def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
+    if inner < RS_RUN:   # short inner axis (an image's rows): one work-item per position
+        rt.launch(rt.kernel(KFILE, "resample_axis_bwd_rows", _resample_options(q)),
+                  (round_up(max(int(n_in), 1), GROUP), max(outer, 1)), None, v_out.data, out.data,
+                  np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner), np.int32(bool(accumulate)))
+        return out
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis_bwd", _resample_options(q)), n_in, inner, outer, v_out.data,
                  out.data, np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
-                 np.int32(bool(accumulate)))
+                 np.int32(bool(accumulate)), run=RS_RUN)
     return out
 
 
@@ -297,7 +308,24 @@ def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Opt
     d = _empty(rt, (H, W, C))
     _launch(rt, rt.kernel(KFILE, "masked_diff"), npix * C, r3.data, t3.data, mask_data, d.data,
             np.int32(npix), np.int32(C), has_mask)
-    coeffs = decompose(rt, d, q, levels)
+    partial, finish, v = diff_loss_and_grad_deferred(rt, d, q, levels, lam)
+    if mask is not None:
+        _launch(rt, rt.kernel(KFILE, "scale_masked"), v.size, v.data, mask.data, np.float32(1.0), np.int32(npix),
+                np.int32(C), np.int32(1))
+    return partial, finish, v.reshape(rendered.shape)
+
+
+def diff_loss_and_grad_deferred(rt, d: cla.Array, q: int, levels: int, weights: Sequence[float]):
+    """The wavelet loss of the masked difference d = m (r - t) [H, W, C] (made by the caller):
+    (partial, finish, W^T(2 lambda_x / n_x * W_x d)) as loss_and_grad_deferred, but the returned
+    cotangent is not yet multiplied by the mask (the caller folds m into its own use of it).
+    d is only read."""
+    _check(d, "d")
+    H, W, C = _as_hwc(d).shape
+    lam = [float(w) for w in weights]
+    if len(lam) != 4:
+        raise ValueError("weights must be the four lambdas (LL, LH, HL, HH)")
+    coeffs = decompose(rt, _as_hwc(d), q, levels)
     slots = len(coeffs) * len(BANDS)
     partial = _empty(rt, (slots * RED_GROUPS,))
     local = min(RED_LOCAL, rt.max_work_group_size)
@@ -316,9 +344,6 @@ def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Opt
             _launch(rt, scl, x.size, x.data, x.data, np.float32(2.0 * lam[b] / x.size),
                     np.int32(x.size), np.int32(1), np.int32(0))
     v = decompose_bwd(rt, coeffs, (H, W, C), q)
-    if mask is not None:
-        _launch(rt, scl, v.size, v.data, mask.data, np.float32(1.0), np.int32(npix), np.int32(C),
-                np.int32(1))
 
     def finish(host_partial: np.ndarray) -> float:
         sums = np.asarray(host_partial).astype(np.float64).reshape(slots, RED_GROUPS).sum(axis=1)
@@ -327,4 +352,4 @@ def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Opt
             loss += lam[s_i % len(BANDS)] * sq / n
         return float(loss)
 
-    return partial, finish, v.reshape(rendered.shape)
+    return partial, finish, v
