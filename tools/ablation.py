@@ -43,13 +43,13 @@ def depth_error(rt, params, scene) -> float:
     return float(np.concatenate(errs).mean())
 
 
-def _stat(rows, get):
+def _stat(rows, get, nd: int = 3):
     vals = [v for v in (get(r) for r in rows) if v is not None]
     if not vals:
         return "n/a"
     if len(vals) == 1:
-        return f"{vals[0]:.3f}"
-    return f"{statistics.mean(vals):.3f} +- {statistics.stdev(vals):.3f}"
+        return f"{vals[0]:.{nd}f}"
+    return f"{statistics.mean(vals):.{nd}f} +- {statistics.stdev(vals):.{nd}f}"
 
 
 def main(argv=None):
@@ -115,7 +115,7 @@ def main(argv=None):
                      f"{_stat(rs, lambda r: r['ssim'])} | {_stat(rs, lambda r: r['lpips'])} | "
                      f"{_stat(rs, lambda r: r['train_psnr'])} | "
                      f"{_stat(rs, lambda r: (r.get('flow') or {}).get('model_epe'))} | "
-                     f"{_stat(rs, lambda r: r['depth_mae'])} | {_stat(rs, lambda r: float(r['gaussians']))} |")
+                     f"{_stat(rs, lambda r: r['depth_mae'])} | {_stat(rs, lambda r: float(r['gaussians']), 0)} |")
     for bn, bv in b.items():
         lines.append(f"| baseline: {bn} | {bv['psnr']:.3f} | {bv['psnr_masked']:.3f} | {bv['ssim']:.3f} | "
                      f"{'n/a' if bv.get('lpips') is None else format(bv['lpips'], '.3f')} | | | | |")
