@@ -1,4 +1,5 @@
-/* project4d forward: one work-item per Gaussian (docs/ARCHITECTURE.md "project4d").
+/* project4d forward (docs/ARCHITECTURE.md "project4d").  Scalar variant: one work-item per
+ * Gaussian; vector variant (-DP4_VW=W): W Gaussians per work-item, one per lane (project4d_common.h).
  * Reference: endowave_cl/reference/project.py::project4d_ref. */
 #include "project4d_common.h"
 
@@ -22,51 +23,83 @@ __kernel void project4d(
     __global int *tiles_touched,     /* [N] */
     __global float *color_inner)     /* [N, NT+1, 3] sum_k c[n, k, rgb] Y_k, for the adjoint */
 {
-    int i = get_global_id(0);
-    if (i >= n) return;
+#ifdef P4_VW
+    if (get_global_id(0) * VW >= n) return;
+    const P4Idx ix = p4_index(get_global_id(0), n);
+#else
+    const P4Idx ix = get_global_id(0);
+    if (ix >= n) return;
+#endif
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
-    p4_forward(&cam, means, scales, quat_l, quat_r, i, t, tiles_x, tiles_y, &s);
-    if (!s.valid) {
-        means2d[2 * i] = 0.0f; means2d[2 * i + 1] = 0.0f;
-        for (int k = 0; k < 3; ++k) conic[3 * i + k] = 0.0f;
-        depth[i] = 0.0f; radius[i] = 0; opac[i] = 0.0f;
-        for (int c = 0; c < CHANNELS; ++c) features[CHANNELS * i + c] = 0.0f;
-        for (int k = 0; k < 4; ++k) rect[4 * i + k] = 0;
-        tiles_touched[i] = 0;
+    p4_forward(&cam, means, scales, quat_l, quat_r, ix, t, tiles_x, tiles_y, &s);
+    const p4i ok = s.valid;
+    if (!P4_ANY(ok)) {
+        const p4f zf = 0.0f;
+        const p4i zi = 0;
+        for (int k = 0; k < 2; ++k) p4_st(means2d, 2, k, ix, zf);
+        for (int k = 0; k < 3; ++k) p4_st(conic, 3, k, ix, zf);
+        p4_st(depth, 1, 0, ix, zf); p4_sti(radius, 1, 0, ix, zi); p4_st(opac, 1, 0, ix, zf);
+        for (int c = 0; c < CHANNELS; ++c) p4_st(features, CHANNELS, c, ix, zf);
+        for (int k = 0; k < 4; ++k) p4_sti(rect, 4, k, ix, zi);
+        p4_sti(tiles_touched, 1, 0, ix, zi);
         return;   /* culled: no colour, and color_inner is never read (the adjoint skips it) */
     }
-    means2d[2 * i] = s.means2d[0]; means2d[2 * i + 1] = s.means2d[1];
-    for (int k = 0; k < 3; ++k) conic[3 * i + k] = s.conic[k];
-    depth[i] = s.p[2];
-    radius[i] = (int)s.radius;
-    opac[i] = s.m / (1.0f + exp(-opacity[i]));
-    for (int k = 0; k < 4; ++k) rect[4 * i + k] = s.rect[k];
-    tiles_touched[i] = (s.rect[2] - s.rect[0]) * (s.rect[3] - s.rect[1]);
+    /* (vector: from here on, lanes of culled Gaussians store 0 through P4_SEL / P4_SELI) */
+    for (int k = 0; k < 2; ++k) p4_st(means2d, 2, k, ix, P4_SEL(ok, s.means2d[k]));
+    for (int k = 0; k < 3; ++k) p4_st(conic, 3, k, ix, P4_SEL(ok, s.conic[k]));
+    p4_st(depth, 1, 0, ix, P4_SEL(ok, s.p[2]));
+#ifdef P4_VW
+    p4_sti(radius, 1, 0, ix, P4_SELI(ok, convert_intV(s.radius)));
+#else
+    radius[ix] = (int)s.radius;
+#endif
+    p4_st(opac, 1, 0, ix, P4_SEL(ok, s.m / (1.0f + P4_EXP(-p4_ld(opacity, 1, 0, ix)))));
+    for (int k = 0; k < 4; ++k) p4_sti(rect, 4, k, ix, P4_SELI(ok, s.rect[k]));
+    p4_sti(tiles_touched, 1, 0, ix, P4_SELI(ok, (s.rect[2] - s.rect[0]) * (s.rect[3] - s.rect[1])));
 
     /* TEASH colour: max(0, 0.5 + sum_{n,k} c[n,k] Y_k(d) cos(omega_n t + phi_n)) */
-    float d[3], Y[SH_K], cs[NT + 1], sn[NT + 1];
+    p4f d[3], Y[SH_K], cs[NT + 1], sn[NT + 1];
     p4_view_dir(&cam, &s, d);
     sh_basis(d, Y);
-    teash_cos_sin(phase, i, t, cs, sn);
-    float out[6];
-    float acc[3] = {0.0f, 0.0f, 0.0f};
-    for (int f = 0; f <= NT; ++f) {
-        float inner[3] = {0.0f, 0.0f, 0.0f};   /* sum_k c[f, k, rgb] Y_k: contiguous reads */
-        for (int k = 0; k < SH_K; ++k)
-            for (int c = 0; c < 3; ++c) inner[c] += sh[((i * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
-        for (int c = 0; c < 3; ++c) {
-            acc[c] += inner[c] * cs[f];
-            color_inner[(i * (NT + 1) + f) * 3 + c] = inner[c];   /* the adjoint reads these, not sh */
+    teash_cos_sin(phase, ix, t, cs, sn);
+    p4f out[6];
+    p4f acc[3] = {0.0f, 0.0f, 0.0f};
+    const int nsh = (NT + 1) * SH_K * 3;
+    p4f inner[(NT + 1) * 3];   /* [NT+1, 3] sum_k c[f, k, rgb] Y_k, k ascending */
+    for (int j = 0; j < (NT + 1) * 3; ++j) inner[j] = 0.0f;
+#ifdef P4_VW
+    /* the coefficients (e = (f SH_K + k) 3 + c) in blocks of VW, each lane's row read contiguously
+     * and transposed into lanes (p4_ld_block); the same sums in the same order as below */
+#pragma unroll
+    for (int e0 = 0; e0 + VW <= nsh; e0 += VW) {
+        p4f blk[VW];
+        p4_ld_block(sh, nsh, e0, ix, blk);
+#pragma unroll
+        for (int j = 0; j < VW; ++j) {
+            const int e = e0 + j;
+            inner[3 * (e / (3 * SH_K)) + e % 3] += blk[j] * Y[(e / 3) % SH_K];
         }
     }
-    for (int c = 0; c < 3; ++c) out[c] = fmax(0.5f + acc[c], 0.0f);
+    for (int e = nsh - nsh % VW; e < nsh; ++e)
+        inner[3 * (e / (3 * SH_K)) + e % 3] += p4_ld(sh, nsh, e, ix) * Y[(e / 3) % SH_K];
+#else
+    for (int f = 0; f <= NT; ++f)
+        for (int k = 0; k < SH_K; ++k)   /* contiguous reads */
+            for (int c = 0; c < 3; ++c) inner[3 * f + c] += sh[((ix * (NT + 1) + f) * SH_K + k) * 3 + c] * Y[k];
+#endif
+    for (int f = 0; f <= NT; ++f)
+        for (int c = 0; c < 3; ++c) {
+            acc[c] += inner[3 * f + c] * cs[f];
+            p4_st(color_inner, (NT + 1) * 3, f * 3 + c, ix, P4_SEL(ok, inner[3 * f + c]));   /* the adjoint reads these, not sh */
+        }
+    for (int c = 0; c < 3; ++c) out[c] = P4_FMAX(0.5f + acc[c], (p4f)(0.0f));
     out[3] = s.p[2];
     out[4] = 0.0f; out[5] = 0.0f;
     if (has_flow) {
-        float p2[3];
-        p4_flow_point(&cam, means, i, &s, t_flow, p2);
+        p4f p2[3];
+        p4_flow_point(&cam, means, ix, &s, t_flow, p2);
         p4_flow(&cam, p2, s.means2d, tiles_x, tiles_y, out + 4);   /* 0 when undefined or runaway */
     }
-    for (int c = 0; c < CHANNELS; ++c) features[CHANNELS * i + c] = (c < 6) ? out[c] : 0.0f;
+    for (int c = 0; c < CHANNELS; ++c) p4_st(features, CHANNELS, c, ix, (c < 6) ? P4_SEL(ok, out[c]) : (p4f)(0.0f));
 }

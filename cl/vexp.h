@@ -1,11 +1,11 @@
 /* exp(x) for x <= 0 on OpenCL vectors (floatVW, VW a build option: 2, 4, 8 or 16), in plain
  * arithmetic so that it stays inline and SIMD on CPU drivers (PoCL calls builtin exp out of line).
  * Lane for lane the same operations, in the same order, as exp_nonpos (both are written from
- * EXP_NONPOS_BODY in raster_common.h), so both give bit-identical results.
+ * EXP_NONPOS_BODY in exp_poly.h), so both give bit-identical results.
  * OpenCL C 1.2. */
 #ifndef ENDOWAVE_VEXP_H
 #define ENDOWAVE_VEXP_H
-#include "raster_common.h"   /* EXP_NONPOS_BODY */
+#include "exp_poly.h"   /* EXP_NONPOS_BODY */
 
 #ifndef VW
 #define VW 8

@@ -1,12 +1,15 @@
 """project4d host op: 4D Gaussians -> 2D splats at time t, and its adjoint (docs/ARCHITECTURE.md).
 
 Kernels: cl/project4d.cl (forward), cl/project4d_bwd.cl (adjoint), shared math in
-cl/project4d_common.h.  Reference: endowave_cl/reference/project.py.
+cl/project4d_common.h, each built as one of two variants (``project_lanes``).  Reference:
+endowave_cl/reference/project.py.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Dict, Optional
+
+import os
 
 import numpy as np
 import pyopencl.array as cla
@@ -14,7 +17,56 @@ import pyopencl.array as cla
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
 from ..layout import CAM_SIZE, CHANNELS, tile_grid
 
-WORK_GROUP = 64        # work-items per group; one work-item per Gaussian
+WORK_GROUP = 64        # work-items per group (scalar variant); one work-item per Gaussian
+VEC_WORK_GROUP = 8     # work-items per group of the vector variant (each takes its lanes' Gaussians)
+
+# Kernel variants (cl/project4d_common.h).  "scalar": one Gaussian per work-item, the GPU path
+# (devices that report a SIMT width, DeviceCaps).  "vector": W Gaussians per work-item in floatW
+# lanes (-DP4_VW=W), for devices that report none: CPU drivers such as PoCL run work-items as loops
+# and do not vectorise the scalar kernels across them.  W is the rasterizer's lane count
+# (ops.rasterize.raster_choice: its probe has checked that the driver generates correct code at
+# that width); a CPU device whose rasterizer falls back to scalar runs the scalar kernels here too.
+ENV_VARIANT = "ENDOWAVE_PROJECT_VARIANT"   # scalar | vector: force a variant (tests, benchmarks)
+ENV_VEC_WIDTH = "ENDOWAVE_PROJECT_VW"      # force the lanes of the vector variant: 2, 4, 8 or 16
+VARIANTS = ("scalar", "vector")
+VEC_WIDTHS = (2, 4, 8, 16)
+
+
+def project_lanes(rt) -> int:
+    """Lanes of the project4d variant that runs on rt: 0 for the scalar kernels, else W.
+
+    $ENDOWAVE_PROJECT_VARIANT / $ENDOWAVE_PROJECT_VW force a variant / lane count; else devices
+    that report a SIMT width run the scalar kernels and the others the vector ones at the
+    rasterizer's lane count (scalar where the rasterizer runs scalar)."""
+    v = os.environ.get(ENV_VARIANT, "").strip().lower()
+    if v and v not in VARIANTS:
+        raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
+    w = os.environ.get(ENV_VEC_WIDTH, "").strip()
+    if w and int(w) not in VEC_WIDTHS:
+        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected one of {VEC_WIDTHS}")
+    if v == "scalar":
+        return 0
+    if w:
+        return int(w)
+    from .rasterize import raster_choice, simt_device
+    if v != "vector" and simt_device(rt):
+        return 0
+    ch = raster_choice(rt)
+    if ch.variant == "vector":
+        return ch.vw
+    return 16 if v == "vector" else 0
+
+
+def _launch(rt, file: str, name: str, opts, n: int, *args):
+    """Build (variant options added) and launch project4d / project4d_bwd over n Gaussians.  The
+    vector kernels need N >= lanes (every lane a Gaussian: the last work-item ends at N); smaller
+    scenes run the scalar kernels."""
+    lanes = project_lanes(rt)
+    if lanes and n >= lanes:
+        k = rt.kernel(file, name, list(opts) + [f"-DP4_VW={lanes}"])
+        rt.launch_1d(k, -(-n // lanes), VEC_WORK_GROUP, *args)
+    else:
+        rt.launch_1d(rt.kernel(file, name, opts), n, WORK_GROUP, *args)
 
 
 @dataclass
@@ -97,8 +149,7 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
     out.camera, out.camera_buf = camera, cam
-    k = rt.kernel("project4d.cl", "project4d", _options(rt, degree, nt, channels))
-    rt.launch_1d(k, n, WORK_GROUP,
+    _launch(rt, "project4d.cl", "project4d", _options(rt, degree, nt, channels), n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
@@ -129,8 +180,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     channels = int(v_features.shape[1])
     tiles_x, tiles_y = _tiles(camera)
     cam = proj.camera_buf if proj.camera is camera and proj.camera_buf is not None else camera_buffer(rt, camera)
-    k = rt.kernel("project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels))
-    rt.launch_1d(k, n, WORK_GROUP,
+    _launch(rt, "project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels), n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, proj.color_inner.data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
