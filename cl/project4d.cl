@@ -65,22 +65,17 @@ __kernel void project4d(
     teash_cos_sin(phase, ix, t, cs, sn);
     p4f out[6];
     p4f acc[3] = {0.0f, 0.0f, 0.0f};
-    const int nsh = (NT + 1) * SH_K * 3;
+    const int nsh = P4_NSH;
     p4f inner[(NT + 1) * 3];   /* [NT+1, 3] sum_k c[f, k, rgb] Y_k, k ascending */
     for (int j = 0; j < (NT + 1) * 3; ++j) inner[j] = 0.0f;
 #ifdef P4_VW
-    /* the coefficients (e = (f SH_K + k) 3 + c) in blocks of VW, each lane's row read contiguously
-     * and transposed into lanes (p4_ld_block); the same sums in the same order as below */
+    /* the coefficients (e = (f SH_K + k) 3 + c): whole blocks of VW read by rows and transposed
+     * into lanes (p4_ld_rows), the rest gathered; the same sums in the same order as below */
+    p4f coef[P4_NSH_ARR];
+    p4_ld_rows(sh, nsh, ix, coef);
 #pragma unroll
-    for (int e0 = 0; e0 + VW <= nsh; e0 += VW) {
-        p4f blk[VW];
-        p4_ld_block(sh, nsh, e0, ix, blk);
-#pragma unroll
-        for (int j = 0; j < VW; ++j) {
-            const int e = e0 + j;
-            inner[3 * (e / (3 * SH_K)) + e % 3] += blk[j] * Y[(e / 3) % SH_K];
-        }
-    }
+    for (int e = 0; e < nsh - nsh % VW; ++e)
+        inner[3 * (e / (3 * SH_K)) + e % 3] += coef[e] * Y[(e / 3) % SH_K];
     for (int e = nsh - nsh % VW; e < nsh; ++e)
         inner[3 * (e / (3 * SH_K)) + e % 3] += p4_ld(sh, nsh, e, ix) * Y[(e / 3) % SH_K];
 #else

@@ -68,7 +68,7 @@ __kernel void project4d_bwd(
         s.valid = s.valid & vis;
     }
     const p4i ok = s.valid;   /* (vector: culled lanes store 0 through P4_SEL from here on) */
-    const int nsh = (NT + 1) * SH_K * 3;
+    const int nsh = P4_NSH;
     if (!P4_ANY(ok)) {
         const p4f zf = 0.0f;
         for (int k = 0; k < 4; ++k) {
@@ -100,14 +100,11 @@ __kernel void project4d_bwd(
     for (int k = 0; k < SH_K; ++k)
         for (int c = 0; c < 3; ++c) gY[3 * k + c] = gcol[c] * Y[k];
 #ifdef P4_VW
-    /* v_sh in blocks of VW entries (e = f SH_K 3 + j), transposed into whole rows (p4_st_block) */
+    /* v_sh (e = f SH_K 3 + j): whole blocks of VW transposed into rows (p4_st_rows), the rest scattered */
+    p4f vshv[P4_NSH_ARR];
 #pragma unroll
-    for (int e0 = 0; e0 + VW <= nsh; e0 += VW) {
-        p4f blk[VW];
-#pragma unroll
-        for (int j = 0; j < VW; ++j) blk[j] = P4_SEL(ok, gY[(e0 + j) % (SH_K * 3)] * cs[(e0 + j) / (SH_K * 3)]);
-        p4_st_block(v_sh, nsh, e0, ix, blk);
-    }
+    for (int e = 0; e < nsh - nsh % VW; ++e) vshv[e] = P4_SEL(ok, gY[e % (SH_K * 3)] * cs[e / (SH_K * 3)]);
+    p4_st_rows(v_sh, nsh, ix, vshv);
     for (int e = nsh - nsh % VW; e < nsh; ++e)
         p4_st(v_sh, nsh, e, ix, P4_SEL(ok, gY[e % (SH_K * 3)] * cs[e / (SH_K * 3)]));
 #else

@@ -29,6 +29,7 @@
 #ifndef NT
 #define NT 2
 #endif
+#define P4_NSH ((NT + 1) * SH_K * 3)   /* SH coefficients per Gaussian */
 #ifndef CHANNELS
 #define CHANNELS 6
 #endif
@@ -116,6 +117,9 @@ typedef struct {
 #error "P4_VW must be 2, 4, 8 or 16"
 #endif
 
+#define P4_NBLK (P4_NSH / VW)              /* whole blocks of VW SH coefficients per Gaussian */
+#define P4_NSH_ARR (P4_NBLK > 0 ? P4_NBLK * VW : 1)   /* size of an array of them (never 0) */
+
 /* the Gaussians of work-item g of n (n >= VW) */
 P4_FN P4Idx p4_index(int g, int n) {
     P4Idx ix;
@@ -158,27 +162,38 @@ P4_FN void p4_transpose(p4f *r) {
         for (int a = 0; a < VW; ++a) r[a] = u[a];
     }
 }
-/* Elements j0 .. j0 + VW - 1 of each lane's row of stride floats, as VW vectors (out[j]: element
- * j0 + j of every lane): one contiguous load per lane and a transpose instead of VW^2 gathers. */
-P4_FN void p4_ld_block(__global const float *p, int stride, int j0, P4Idx ix, p4f *out) {
+/* The first nb = P4_NBLK blocks of VW floats of each lane's row of stride floats, as nb VW vectors (out[j]: element j
+ * of every lane): each lane's row read in order, VW floats at a time, and each VW x VW block
+ * transposed, instead of VW gathers per element.  (Lane by lane rather than block by block: the
+ * reads then run through memory in order, measured faster.) */
+P4_FN void p4_ld_rows(__global const float *p, int stride, P4Idx ix, p4f *out) {
+    const int nb = P4_NBLK;
 #pragma unroll
-    for (int l = 0; l < VW; ++l) {
-        __global const float *q = p + stride * (ix.base + l) + j0;
-        out[l] = (p4f)(P4_LIST(P4_ROW_LANE));
-    }
-    p4_transpose(out);
+    for (int l = 0; l < VW; ++l)
+#pragma unroll
+        for (int b = 0; b < nb; ++b) {
+            __global const float *q = p + stride * (ix.base + l) + VW * b;
+            out[VW * b + l] = (p4f)(P4_LIST(P4_ROW_LANE));
+        }
+#pragma unroll
+    for (int b = 0; b < nb; ++b) p4_transpose(out + VW * b);
 }
-/* The inverse: in[j] holds element j0 + j of every lane; each lane's VW elements are stored as one
- * contiguous row (lanes below lo skipped).  in is overwritten. */
+/* The inverse: in[j] holds element j of every lane; each lane's first P4_NBLK VW floats are stored in
+ * order (lanes below lo skipped).  in is overwritten. */
 #define P4_ROW_ST(l, s) q[l] = v.s;
-P4_FN void p4_st_block(__global float *p, int stride, int j0, P4Idx ix, p4f *in) {
-    p4_transpose(in);
+P4_FN void p4_st_rows(__global float *p, int stride, P4Idx ix, p4f *in) {
+    const int nb = P4_NBLK;
+#pragma unroll
+    for (int b = 0; b < nb; ++b) p4_transpose(in + VW * b);
 #pragma unroll
     for (int l = 0; l < VW; ++l) {
         if (l < ix.lo) continue;
-        __global float *q = p + stride * (ix.base + l) + j0;
-        const p4f v = in[l];
-        P4_STMTS(P4_ROW_ST)
+#pragma unroll
+        for (int b = 0; b < nb; ++b) {
+            __global float *q = p + stride * (ix.base + l) + VW * b;
+            const p4f v = in[VW * b + l];
+            P4_STMTS(P4_ROW_ST)
+        }
     }
 }
 /* The 4 components of each lane's row of a [N, 4] array: VW / 4 ... 4 contiguous vectors and two
