@@ -10,12 +10,28 @@ import torch
 from conftest import small
 from endowave_cl.camera import Camera
 from endowave_cl.gaussians import MARGINAL_CULL, Gaussians, upload
-from endowave_cl.ops.project import project4d, project4d_bwd
+from endowave_cl.ops.project import ENV_VARIANT, ENV_VEC_WIDTH, project4d, project4d_bwd, project_lanes
 from endowave_cl.reference.project import (condition_at, covariance4d, project4d_ref, rotation4d,
                                            sh_basis)
 
 FLOAT_OUTS = ("means2d", "conic", "depth", "opac", "features")
 INT_OUTS = ("radius", "rect", "tiles_touched")
+
+# Every kernel variant (ops/project.py): the scalar kernels (the GPU path) and the vector ones at
+# each lane count (the CPU path; scenes with fewer Gaussians than lanes run the scalar kernels).
+VARIANT_PARAMS = ["scalar", "vector4", "vector8", "vector16"]
+
+
+@pytest.fixture(params=VARIANT_PARAMS)
+def variant(request, monkeypatch, rt):
+    """Run the test with each project4d variant, forward and adjoint."""
+    name = request.param
+    monkeypatch.setenv(ENV_VARIANT, name[:6])
+    monkeypatch.delenv(ENV_VEC_WIDTH, raising=False)
+    if name != "scalar":
+        monkeypatch.setenv(ENV_VEC_WIDTH, name[6:])
+    assert project_lanes(rt) == (0 if name == "scalar" else int(name[6:]))
+    return name
 
 
 def look_camera(seed: int, width=200, height=150) -> Camera:
@@ -107,7 +123,7 @@ def assert_forward_close(k, r):
 
 @pytest.mark.parametrize("n,seed,t,t_flow", [(1, 0, 0.5, None), (37, 1, 0.3, 0.35), (500, 2, 0.7, 0.6),
                                              (1000, 3, 0.0, 1.0)])
-def test_forward_matches_reference(rt, n, seed, t, t_flow):
+def test_forward_matches_reference(rt, variant, n, seed, t, t_flow):
     g = Gaussians.random(small(n, 7), seed=seed)
     g.means[:2, 3] = t              # the first two at their temporal peak, so N = 1 is visible too
     cam = look_camera(seed)
@@ -119,7 +135,7 @@ def test_forward_matches_reference(rt, n, seed, t, t_flow):
 
 
 @pytest.mark.parametrize("degree,nt,channels", [(0, 0, 3), (1, 1, 4), (2, 3, 6), (3, 2, 8)])
-def test_forward_other_sizes(rt, degree, nt, channels):
+def test_forward_other_sizes(rt, variant, degree, nt, channels):
     g = Gaussians.random(small(70, 5), seed=11, degree=degree, nt=nt)
     k, r = run_both(rt, g, look_camera(3), 0.45, 0.5, channels)
     assert k["features"].shape == (len(g), channels)
@@ -127,14 +143,14 @@ def test_forward_other_sizes(rt, degree, nt, channels):
 
 
 @pytest.mark.oclgrind
-def test_forward_tiny_oclgrind(rt):
+def test_forward_tiny_oclgrind(rt, variant):
     g = Gaussians.random(7, seed=4)
     g.means[0, 2] = -1.0            # one behind the camera
     k, r = run_both(rt, g, look_camera(4, 40, 24), 0.5, 0.55)
     assert_forward_close(k, r)
 
 
-def test_empty_scene(rt):
+def test_empty_scene(rt, variant):
     g = Gaussians.empty()
     p = project4d(rt, upload(rt, g), look_camera(0), 0.5, 0.6)
     assert p.means2d.shape == (0, 2) and p.features.shape == (0, 6) and p.rect.shape == (0, 4)
@@ -190,7 +206,7 @@ def xt_gaussian(theta, sx, st, mean):
     return g
 
 
-def test_known_velocity_position_and_flow(rt):
+def test_known_velocity_position_and_flow(rt, variant):
     theta, sx, st = 0.6, 0.05, 0.4
     c, s = math.cos(theta), math.sin(theta)
     # Sigma = R diag(sx^2, ., ., st^2) R^T in the (x, t) plane, R = [[c, -s], [s, c]]:
@@ -244,7 +260,7 @@ def test_sh_basis_orthonormal():
 # ---------------------------------------------------------------------------------------------
 # culling
 
-def test_culling_rules(rt):
+def test_culling_rules(rt, variant):
     g = Gaussians.random(8, seed=5, scale=0.02)
     cam = look_camera(7, 160, 120)
     t = 0.5
@@ -332,7 +348,7 @@ def assert_grads_close(kg, rg, radius):
 
 @pytest.mark.parametrize("n,seed,t,t_flow", [(1, 0, 0.5, None), (45, 1, 0.3, 0.4), (300, 2, 0.6, 0.5),
                                              (600, 3, 0.9, 0.2)])
-def test_adjoint_matches_autograd(rt, n, seed, t, t_flow):
+def test_adjoint_matches_autograd(rt, variant, n, seed, t, t_flow):
     g = Gaussians.random(small(n, 7), seed=seed)
     g.means[-1, 3] = t
     make_culled(g, t)
@@ -346,14 +362,14 @@ def test_adjoint_matches_autograd(rt, n, seed, t, t_flow):
 
 
 @pytest.mark.parametrize("degree,nt,channels", [(0, 0, 3), (1, 1, 4), (3, 2, 8)])
-def test_adjoint_other_sizes(rt, degree, nt, channels):
+def test_adjoint_other_sizes(rt, variant, degree, nt, channels):
     g = Gaussians.random(small(80, 5), seed=21, degree=degree, nt=nt)
     make_culled(g, 0.4)
     kg, rg, radius = run_adjoint(rt, g, look_camera(5), 0.4, 0.47, channels)
     assert_grads_close(kg, rg, radius)
 
 
-def test_adjoint_flow_point_behind_camera(rt):
+def test_adjoint_flow_point_behind_camera(rt, variant):
     # a Gaussian moving along z (rotated in the (z, t) plane) whose conditional mean at t_flow is
     # behind the near plane: its flow is 0 and carries no gradient, while the rest still does.
     # (z, t) = quaternion (j, k) plane: exp(i a) on the left turns (1, i) and (j, k) by a, on the
@@ -378,14 +394,14 @@ def test_adjoint_flow_point_behind_camera(rt):
 
 
 @pytest.mark.oclgrind
-def test_adjoint_tiny_oclgrind(rt):
+def test_adjoint_tiny_oclgrind(rt, variant):
     g = Gaussians.random(7, seed=8)
     make_culled(g, 0.5)
     kg, rg, radius = run_adjoint(rt, g, look_camera(8, 48, 40), 0.5, 0.56)
     assert_grads_close(kg, rg, radius)
 
 
-def test_empty_scene_adjoint(rt):
+def test_empty_scene_adjoint(rt, variant):
     import pyopencl.array as cla
     g = Gaussians.empty()
     prm = upload(rt, g)
@@ -418,7 +434,7 @@ def test_reference_whole_stage_finite_differences():
     assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def test_teash_colour_by_hand(rt):
+def test_teash_colour_by_hand(rt, variant):
     # one static Gaussian straight ahead of an identity camera: view direction (0, 0, 1), where the
     # 3DGS real SH are Y_0 = C0, Y_2 = C1 z = C1, Y_6 = C2[2] (2 z^2) = 2 C2[2], Y_12 = C3[3] 2 z^3,
     # and every other basis is 0.  omega_n = 2 pi n / TEASH_PERIOD (= pi n with period 2).
@@ -447,7 +463,7 @@ def test_teash_colour_by_hand(rt):
     np.testing.assert_allclose(Y[1], [SH_C0, -SH_C1, 0, 0], atol=1e-15)
 
 
-def test_runaway_flow_is_dropped(rt):
+def test_runaway_flow_is_dropped(rt, variant):
     # a nearly static-in-time, fast Gaussian: velocity Sigma_xt / Sigma_tt ~ 50 units per unit time,
     # ~370 px of flow over 0.15, more than the 160 x 120 image: its flow is 0 with no gradient
     # (p4_flow), while a slow one next to it keeps its flow and gradients
@@ -464,3 +480,91 @@ def test_runaway_flow_is_dropped(rt):
         assert_grads_close(kg, rg, radius)
     assert (project4d(rt, upload(rt, fast), cam, 0.5, 0.65).features.get()[0, 4:6] == 0).all()
     assert np.abs(project4d(rt, upload(rt, slow), cam, 0.5, 0.65).features.get()[0, 4:6]).max() > 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the vector variant's lanes: N around multiples of the lane count, culled and special rows in
+# every lane position (the rows above one at a time run the scalar kernels under a vector variant)
+
+def special_rows(t: float) -> Gaussians:
+    """The single Gaussians of the tests above and the culling cases, as one scene at time t:
+    moving (x, t) Gaussians, a runaway-flow one, rows behind the camera, off-screen, outside the
+    temporal window, degenerate, and at the marginal cut on both sides."""
+    rows = [xt_gaussian(0.6, 0.05, 0.4, np.array([0.1, -0.05, 3.0, t])),
+            xt_gaussian(0.02, 1.0, 1e-3, np.array([0.1, -0.05, 3.0, t])),      # runaway flow
+            xt_gaussian(0.0, 0.05, 0.5, np.array([0.0, 0.0, 2.0, t - 0.05]))]
+    g = Gaussians.random(9, seed=5, scale=0.02)
+    g.means[:, 3] = t
+    g.means[0, :3] = [0.0, 0.0, -2.0]                           # behind the camera
+    g.means[1, :3] = [50.0, 0.0, 3.0]                           # far off-screen
+    g.means[2, 3] = t + 10.0                                    # outside the temporal window
+    g.scales[3] = -40.0                                         # degenerate: Sigma_tt ~ 0
+    g.scales[4] = 60.0                                          # degenerate: overflows
+    g.means[5, 3] = t + 2.5 * np.exp(g.scales[5, 3])            # m = 0.044 < MARGINAL_CULL: culled
+    g.quat_l[5] = g.quat_r[5] = [1, 0, 0, 0]
+    g.means[6, 3] = t + 2.4 * np.exp(g.scales[6, 3])            # m = 0.056: kept
+    g.quat_l[6] = g.quat_r[6] = [1, 0, 0, 0]
+    rows.append(g)
+    return Gaussians(**{k: np.concatenate([r.as_dict()[k] for r in rows]) for k in rows[0].as_dict()})
+
+
+def lane_scene(n: int, t: float, seed: int) -> Gaussians:
+    """n Gaussians: the special rows repeated in a shuffled order (so that each sits in several lane
+    positions, the last work-item's included) among random ones."""
+    sp = special_rows(t)
+    rng = np.random.default_rng(seed)
+    g = Gaussians.random(n, seed=seed)
+    idx = rng.permutation(n)[: min(n, 3 * len(sp))]
+    for j, i in enumerate(idx):
+        for k, a in g.as_dict().items():
+            a[i] = sp.as_dict()[k][j % len(sp)]
+    return g
+
+
+@pytest.mark.parametrize("n", [3, 15, 16, 17, 31, 33, 40, 64, 71])
+@pytest.mark.parametrize("t_flow", [None, 0.58])
+def test_lanes_forward_and_adjoint(rt, variant, n, t_flow):
+    t = 0.5
+    g = lane_scene(n, t, seed=n)
+    cam = Camera(150.0, 160.0, 80.0, 60.0, 160, 120)
+    k, r = run_both(rt, g, cam, t, t_flow)
+    if n >= 8:   # (3 rows: all visible)
+        assert (r["radius"] > 0).any() and (r["radius"] == 0).any()
+    assert_forward_close(k, r)
+    for f in FLOAT_OUTS:
+        assert (k[f][r["radius"] == 0] == 0).all(), f
+    # exp(60)^2 overflows float32 (culled) but not the float64 reference of the adjoint: the forward
+    # above covers it; the adjoint gets a Sigma_tt ~ 0 row instead
+    g.scales[g.scales[:, 0] == 60.0] = -40.0
+    kg, rg, radius = run_adjoint(rt, g, cam, t, t_flow, seed=n)
+    assert_grads_close(kg, rg, radius)
+
+
+@pytest.mark.oclgrind
+def test_lanes_tiny_oclgrind(rt, variant):
+    g = lane_scene(21, 0.5, seed=2)
+    cam = Camera(150.0, 160.0, 80.0, 60.0, 160, 120)
+    k, r = run_both(rt, g, cam, 0.5, 0.56)
+    assert_forward_close(k, r)
+    g.scales[g.scales[:, 0] == 60.0] = -40.0   # (as in test_lanes_forward_and_adjoint)
+    kg, rg, radius = run_adjoint(rt, g, cam, 0.5, 0.56, seed=2)
+    assert_grads_close(kg, rg, radius)
+
+
+def test_variant_choice(rt, monkeypatch):
+    """Devices that report a SIMT width run the scalar kernels; the others the vector ones at the
+    rasterizer's lane count (or scalar where the rasterizer runs scalar); the environment forces."""
+    from endowave_cl.ops.rasterize import raster_choice, simt_device
+    monkeypatch.delenv(ENV_VARIANT, raising=False)
+    monkeypatch.delenv(ENV_VEC_WIDTH, raising=False)
+    ch = raster_choice(rt)
+    expect = 0 if simt_device(rt) or ch.variant == "scalar" else ch.vw
+    assert project_lanes(rt) == expect
+    monkeypatch.setenv(ENV_VARIANT, "scalar")
+    assert project_lanes(rt) == 0
+    monkeypatch.setenv(ENV_VARIANT, "vector")
+    monkeypatch.setenv(ENV_VEC_WIDTH, "8")
+    assert project_lanes(rt) == 8
+    monkeypatch.setenv(ENV_VEC_WIDTH, "5")
+    with pytest.raises(ValueError):
+        project_lanes(rt)
