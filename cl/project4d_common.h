@@ -89,8 +89,14 @@
 typedef floatV p4f;
 typedef intV p4i;
 /* The functions below must be inlined for the lanes' offsets to become constants (PoCL leaves
- * plain `inline` functions with array arguments out of line) */
+ * plain `inline` functions with array arguments out of line).  P4_NO_FORCE_INLINE: plain inline
+ * (the host sets it for Oclgrind, which cannot create the kernel when its callees are
+ * always_inline; the same code otherwise). */
+#ifdef P4_NO_FORCE_INLINE
+#define P4_FN inline
+#else
 #define P4_FN inline __attribute__((always_inline))
+#endif
 /* The Gaussians of a work-item: lane l is Gaussian base + l; lanes below lo were done by the
  * previous work-item (the last work-item is moved back to end at N, so that every lane is a
  * Gaussian: the host runs the vector variant only for N >= VW) and store nothing. */

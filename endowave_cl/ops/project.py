@@ -63,7 +63,9 @@ def _launch(rt, file: str, name: str, opts, n: int, *args):
     scenes run the scalar kernels."""
     lanes = project_lanes(rt)
     if lanes and n >= lanes:
-        k = rt.kernel(file, name, list(opts) + [f"-DP4_VW={lanes}"])
+        # Oclgrind cannot create the kernel when its callees are always_inline (project4d_common.h)
+        extra = ["-DP4_NO_FORCE_INLINE"] if getattr(rt, "is_oclgrind", False) else []
+        k = rt.kernel(file, name, list(opts) + [f"-DP4_VW={lanes}"] + extra)
         rt.launch_1d(k, -(-n // lanes), VEC_WORK_GROUP, *args)
     else:
         rt.launch_1d(rt.kernel(file, name, opts), n, WORK_GROUP, *args)
