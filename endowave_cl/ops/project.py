@@ -57,15 +57,15 @@ def project_lanes(rt) -> int:
     return 16 if v == "vector" else 0
 
 
-def _launch(rt, file: str, name: str, opts, n: int, *args):
-    """Build (variant options added) and launch project4d / project4d_bwd over n Gaussians.  The
-    vector kernels need N >= lanes (every lane a Gaussian: the last work-item ends at N); smaller
-    scenes run the scalar kernels."""
+def _launch(rt, file: str, name: str, opts, n: int, *args, vec_opts=lambda lanes: []):
+    """Build (variant options added; vec_opts(lanes): more for the vector variant) and launch
+    project4d / project4d_bwd over n Gaussians.  The vector kernels need N >= lanes (every lane a
+    Gaussian: the last work-item ends at N); smaller scenes run the scalar kernels."""
     lanes = project_lanes(rt)
     if lanes and n >= lanes:
         # Oclgrind cannot create the kernel when its callees are always_inline (project4d_common.h)
         extra = ["-DP4_NO_FORCE_INLINE"] if getattr(rt, "is_oclgrind", False) else []
-        k = rt.kernel(file, name, list(opts) + [f"-DP4_VW={lanes}"] + extra)
+        k = rt.kernel(file, name, list(opts) + [f"-DP4_VW={lanes}"] + extra + vec_opts(lanes))
         rt.launch_1d(k, -(-n // lanes), VEC_WORK_GROUP, *args)
     else:
         rt.launch_1d(rt.kernel(file, name, opts), n, WORK_GROUP, *args)
@@ -182,6 +182,14 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     channels = int(v_features.shape[1])
     tiles_x, tiles_y = _tiles(camera)
     cam = proj.camera_buf if proj.camera is camera and proj.camera_buf is not None else camera_buffer(rt, camera)
+
+    def nt_store(lanes):
+        # non-temporal whole-vector stores of v_sh rows (p4_st_rows): only where every row block
+        # of lanes floats is aligned to its size (rows a multiple of lanes floats, buffer aligned)
+        vbytes = 4 * lanes
+        base_align = int(getattr(rt.device, "mem_base_addr_align", 0) or 0) // 8
+        ok = ((nt + 1) * K * 3) % lanes == 0 and base_align % vbytes == 0 and grads["v_sh"].offset % vbytes == 0
+        return ["-DP4_NT_STORE=1"] if ok else []
     _launch(rt, "project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels), n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, proj.color_inner.data, params["phase"].data,
@@ -189,5 +197,5 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
                  np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
                  proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
                  grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
-                 grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data)
+                 grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data, vec_opts=nt_store)
     return grads
