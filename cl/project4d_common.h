@@ -168,10 +168,11 @@ P4_FN void p4_transpose(p4f *r) {
         for (int a = 0; a < VW; ++a) r[a] = u[a];
     }
 }
-/* The first nb = P4_NBLK blocks of VW floats of each lane's row of stride floats, as nb VW vectors (out[j]: element j
- * of every lane): each lane's row read in order, VW floats at a time, and each VW x VW block
- * transposed, instead of VW gathers per element.  (Lane by lane rather than block by block: the
- * reads then run through memory in order, measured faster.) */
+/* The first nb = P4_NBLK blocks of VW floats of each lane's row of stride floats, as nb VW vectors
+ * (out[j]: element j of every lane): each lane's row read in order, VW floats at a time, and each
+ * VW x VW block transposed, instead of VW gathers per element.  (Lane by lane rather than block by
+ * block: the reads then run through memory in order, measured faster; skipping the rows of culled
+ * lanes measured no faster.) */
 P4_FN void p4_ld_rows(__global const float *p, int stride, P4Idx ix, p4f *out) {
     const int nb = P4_NBLK;
 #pragma unroll
@@ -232,7 +233,8 @@ P4_FN void p4_ld4(__global const float *p, P4Idx ix, p4f *out) {
 #define P4_WHERE(m, v) ((m) ? (v) : (p4f)(0.0f))    /* v where m, else 0 (both variants) */
 #define P4_FMAX(a, b) ((a) > (b) ? (a) : (b))       /* b where a is NaN, as fmax */
 #define P4_FMIN(a, b) ((a) < (b) ? (a) : (b))
-#define P4_ISFINITE(x) (fabs(x) < (p4f)(INFINITY))
+#define P4_FABS(x) as_floatV(as_intV(x) & 0x7fffffff)   /* fabs without a call (PoCL calls it) */
+#define P4_ISFINITE(x) (P4_FABS(x) < (p4f)(INFINITY))
 #define P4_EXP(x) p4v_exp(x)
 
 #else   /* scalar: one Gaussian per work-item */
@@ -294,7 +296,7 @@ P4_FN floatV p4v_exp(floatV x) {
 #define TWO_OVER_PI 0.636619772367581343f
 P4_FN void p4v_sincos(floatV x, floatV *c, floatV *s) {
     const floatV y = x * TWO_OVER_PI;
-    const floatV kf = fabs(y) < (floatV)(ROUND_MAGIC / 3.0f) ? (y + ROUND_MAGIC) - ROUND_MAGIC : y;   /* round(y) */
+    const floatV kf = P4_FABS(y) < (floatV)(ROUND_MAGIC / 3.0f) ? (y + ROUND_MAGIC) - ROUND_MAGIC : y;   /* round(y) */
     const floatV r = ((x - kf * PIO2_1) - kf * PIO2_2) - kf * PIO2_3;
     const floatV z = r * r;
     floatV ps = (floatV)(-1.9515295891e-4f);
@@ -556,7 +558,7 @@ P4_FN p4i p4_flow(const P4Cam *cam, const p4f *p2, const p4f *means2d, int tiles
 #ifdef P4_VW
     const p4f f0 = cam->fx * p2[0] / p2[2] + cam->cx - means2d[0];
     const p4f f1 = cam->fy * p2[1] / p2[2] + cam->cy - means2d[1];
-    const p4i ok = (p2[2] >= cam->near) & (fabs(f0) <= fmax_px) & (fabs(f1) <= fmax_px);
+    const p4i ok = (p2[2] >= cam->near) & (P4_FABS(f0) <= fmax_px) & (P4_FABS(f1) <= fmax_px);
     flow[0] = P4_SEL(ok, f0); flow[1] = P4_SEL(ok, f1);
     return ok;
 #else
