@@ -185,21 +185,21 @@ P4_FN void p4_ld_rows(__global const float *p, int stride, P4Idx ix, p4f *out) {
 #pragma unroll
     for (int b = 0; b < nb; ++b) p4_transpose(out + VW * b);
 }
-/* The inverse: in[j] holds element j of every lane; each lane's first P4_NBLK VW floats are stored in
- * order (lanes below lo skipped).  in is overwritten.  P4_NT_STORE (set by the host only when every
- * row block is VW-float aligned: stride a multiple of VW, the buffer aligned): one non-temporal
- * vector store per block, which skips reading the destination's cache lines first (the adjoint's
- * v_sh is written in full and not read back here). */
+/* The inverse: in[j] holds element j of every lane; each lane's first P4_NBLK VW floats are stored
+ * (lanes below lo skipped), block by block: each block transposed and its VW rows stored (measured
+ * faster than lane by lane here: the blocks stay in registers).  in is overwritten.  P4_NT_STORE
+ * (set by the host only when every row block is VW-float aligned: stride a multiple of VW, the
+ * buffer aligned): one non-temporal vector store per block, which skips reading the destination's
+ * cache lines first (the adjoint's v_sh is written in full and not read back here). */
 #define P4_ROW_ST(l, s) q[l] = v.s;
 P4_FN void p4_st_rows(__global float *p, int stride, P4Idx ix, p4f *in) {
     const int nb = P4_NBLK;
 #pragma unroll
-    for (int b = 0; b < nb; ++b) p4_transpose(in + VW * b);
+    for (int b = 0; b < nb; ++b) {
+        p4_transpose(in + VW * b);
 #pragma unroll
-    for (int l = 0; l < VW; ++l) {
-        if (l < ix.lo) continue;
-#pragma unroll
-        for (int b = 0; b < nb; ++b) {
+        for (int l = 0; l < VW; ++l) {
+            if (l < ix.lo) continue;
             __global float *q = p + stride * (ix.base + l) + VW * b;
             const p4f v = in[VW * b + l];
 #if defined(P4_NT_STORE) && P4_NT_STORE
