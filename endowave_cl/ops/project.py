@@ -6,10 +6,9 @@ endowave_cl/reference/project.py.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Dict, Optional
-
-import os
 
 import numpy as np
 import pyopencl.array as cla
@@ -48,13 +47,13 @@ def project_lanes(rt) -> int:
         return 0
     if w:
         return int(w)
-    from .rasterize import raster_choice, simt_device
+    from .rasterize import VEC_WIDTH, raster_choice, simt_device
     if v != "vector" and simt_device(rt):
         return 0
     ch = raster_choice(rt)
     if ch.variant == "vector":
         return ch.vw
-    return 16 if v == "vector" else 0
+    return VEC_WIDTH if v == "vector" else 0
 
 
 def _launch(rt, file: str, name: str, opts, n: int, *args, vec_opts=lambda lanes: []):
