@@ -202,7 +202,7 @@ P4_FN void p4_st_rows(__global float *p, int stride, P4Idx ix, p4f *in) {
             if (l < ix.lo) continue;
             __global float *q = p + stride * (ix.base + l) + VW * b;
             const p4f v = in[VW * b + l];
-#if defined(P4_NT_STORE) && P4_NT_STORE
+#if defined(P4_NT_STORE) && P4_NT_STORE && defined(__clang__)   /* a clang builtin: plain stores elsewhere */
             __builtin_nontemporal_store(v, (__global p4f *)q);
 #else
             P4_STMTS(P4_ROW_ST)
