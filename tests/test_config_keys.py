@@ -331,6 +331,17 @@ def _losses(rt, cfg):
     return parts
 
 
+def _gaussian_flow_effect(scene, rt, tmp_path):
+    """lambda_flow_gaussian weights the per-Gaussian flow term in a training step's total (0: off)."""
+    parts = {}
+    for lam in (0.0, 0.5):
+        tr = _trainer(scene, rt, tmp_path / str(lam), use_flow=True, lambda_flow_gaussian=lam)
+        k = next(k for k in tr.scene.train_indices if tr.targets[k].next_time is not None)
+        parts[lam] = tr.train_step(k)
+    assert "flow_gaussian" not in parts[0.0] and parts[0.5]["flow_gaussian"] > 0
+    assert parts[0.5]["total"] - parts[0.0]["total"] == pytest.approx(0.5 * parts[0.5]["flow_gaussian"], rel=1e-4)
+
+
 def _loss_effect(key, value, what):
     def check(scene, rt, tmp_path):
         what(_losses(rt, TrainConfig()), _losses(rt, TrainConfig(**{key: value})))
@@ -408,6 +419,7 @@ CHECKS = {
     "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.0)),
     "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
+    "lambda_flow_gaussian": _gaussian_flow_effect,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

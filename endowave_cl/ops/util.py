@@ -23,6 +23,15 @@ def nonfinite_flag(rt, arrays, flag=None):
     return flag
 
 
+def add_inplace(rt, out, x) -> None:
+    """out += x, elementwise, for float32 device arrays of the same size (enqueued, not waited on)."""
+    if out.size != x.size:
+        raise ValueError(f"add_inplace: sizes differ ({out.size} and {x.size})")
+    if out.size:
+        rt.launch_1d(rt.kernel("util.cl", "add_inplace_f32"), out.size, WORK_GROUP, out.data, x.data,
+                     np.int32(out.size))
+
+
 def any_nonfinite(rt, arrays) -> bool:
     """True when any element of the given float32 device arrays is NaN or infinite (one read-back)."""
     return bool(nonfinite_flag(rt, arrays).get()[0])

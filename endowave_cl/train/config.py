@@ -90,6 +90,9 @@ class TrainConfig:
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
     flow_huber_delta: float = 4.0       # px: beyond this endpoint error the flow loss grows linearly
                                         # (bounded gradient; see reference/losses.py); inf: pure squared
+    lambda_flow_gaussian: float = 0.01  # not in the paper: the same flow error per visible Gaussian
+                                        # (cl/gaussian_flow.cl), so that the Gaussians of a pixel
+                                        # move together, not only their blend; 0: off
     lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
                                         # error per sub-band coefficient (MSE scale), weight 1
     use_depth: bool = True
@@ -191,6 +194,7 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
+    "lambda_flow_gaussian": _NON_NEGATIVE,
     # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
     "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,
     "wavelet_weight_lh": _NON_NEGATIVE, "wavelet_weight_hl": _NON_NEGATIVE, "wavelet_weight_hh": _NON_NEGATIVE,

@@ -141,7 +141,8 @@ class Trainer:
         frame, tgt = self.scene.frames[k], self.targets[k]
         out = render(self.rt, self.params, frame.camera, frame.time, tgt.next_time)        # forward
         pending = self.losses_enqueue(out, tgt)                                          # losses
-        grads = render_backward(self.rt, self.params, out, pending.v_features, densify_stats=self.stats,  # adjoints
+        grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
+                                v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
                                 deterministic=True if self.cfg.deterministic else None)
         host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
         total, parts = pending.finish(host)
@@ -152,10 +153,12 @@ class Trainer:
 
     def losses_enqueue(self, out, tgt: FrameTargets):
         """The step's losses enqueued on the device (train/device_losses.py): a PendingLosses with
-        the gradient image v_features [H, W, C] and the sums the host reads back."""
-        from .device_losses import image_losses_enqueue
-        return image_losses_enqueue(self.rt, out.features, tgt.dev, self.cfg, {"depth": DEPTH, "flow": FLOW.start},
-                                    self.wavelet_config)
+        the gradient image v_features [H, W, C], the per-Gaussian flow loss's gradient
+        v_gaussian_features [N, C] and the sums the host reads back."""
+        from .device_losses import gaussian_flow_enqueue, image_losses_enqueue
+        channels = {"depth": DEPTH, "flow": FLOW.start}
+        pending = image_losses_enqueue(self.rt, out.features, tgt.dev, self.cfg, channels, self.wavelet_config)
+        return gaussian_flow_enqueue(self.rt, out, tgt.dev, self.cfg, channels, pending)
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
