@@ -170,9 +170,8 @@ P4_FN void p4_transpose(p4f *r) {
 }
 /* The first nb = P4_NBLK blocks of VW floats of each lane's row of stride floats, as nb VW vectors
  * (out[j]: element j of every lane): each lane's row read in order, VW floats at a time, and each
- * VW x VW block transposed, instead of VW gathers per element.  (Lane by lane rather than block by
- * block: the reads then run through memory in order, measured faster; skipping the rows of culled
- * lanes measured no faster.) */
+ * VW x VW block transposed, instead of VW gathers per element.  Lane by lane rather than block by
+ * block, so that the reads run through memory in order (docs/PERFORMANCE.md, third pass). */
 P4_FN void p4_ld_rows(__global const float *p, int stride, P4Idx ix, p4f *out) {
     const int nb = P4_NBLK;
 #pragma unroll
@@ -186,8 +185,8 @@ P4_FN void p4_ld_rows(__global const float *p, int stride, P4Idx ix, p4f *out) {
     for (int b = 0; b < nb; ++b) p4_transpose(out + VW * b);
 }
 /* The inverse: in[j] holds element j of every lane; each lane's first P4_NBLK VW floats are stored
- * (lanes below lo skipped), block by block: each block transposed and its VW rows stored (measured
- * faster than lane by lane here: the blocks stay in registers).  in is overwritten.  P4_NT_STORE
+ * (lanes below lo skipped), block by block: each block transposed and its VW rows stored while the
+ * block is in registers (docs/PERFORMANCE.md, third pass).  in is overwritten.  P4_NT_STORE
  * (set by the host only when every row block is VW-float aligned: stride a multiple of VW, the
  * buffer aligned): one non-temporal vector store per block, which skips reading the destination's
  * cache lines first (the adjoint's v_sh is written in full and not read back here). */
