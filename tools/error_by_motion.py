@@ -12,7 +12,7 @@ carry the motion.
    flow (per spacing) under their centre.  The composited flow can be right while the
    Gaussians of a pixel scatter around it; the scatter is what blurs renders between frames.
 
-    python tools/error_by_motion.py RUN_DIR SCENE --downscale 2
+    python tools/error_by_motion.py RUN_DIR SCENE --downscale 2 [--png regions.png]
 """
 from __future__ import annotations
 
@@ -32,11 +32,40 @@ def region_psnr(sq_err_sums, counts):
     return [float(10 * np.log10(c / s)) if c and s > 0 else float("nan") for s, c in zip(sq_err_sums, counts)]
 
 
+def region_chart_png(rows, fractions, title: str) -> bytes:
+    """PNG bytes: grouped bars of PSNR per motion region, one bar per row of the table."""
+    import io
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import numpy as np
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(7.0, 3.4), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    x = np.arange(len(REGIONS))
+    width = 0.8 / len(rows)
+    for j, (name, vals) in enumerate(rows.items()):
+        ax.bar(x + (j - (len(rows) - 1) / 2) * width, vals, width, label=name)
+    ax.set_xticks(x, [f"{r} ({100 * f:.0f}% of pixels)" for r, f in zip(REGIONS, fractions)])
+    lo = min(min(v) for v in rows.values())
+    ax.set_ylim(np.floor(lo) - 1, None)
+    ax.set_ylabel("PSNR (dB), pooled over the test frames")
+    ax.set_title(title, fontsize=8)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", help="run folder (its latest checkpoint) or a checkpoint .npz")
     ap.add_argument("scene", help="the scene folder it was trained on")
     ap.add_argument("--downscale", type=float, default=1.0)
+    ap.add_argument("--png", help="also draw the region table as a bar chart into this PNG (atomically)")
+    ap.add_argument("--title", help="the chart's title (default: the run)")
     args = ap.parse_args(argv)
 
     import numpy as np
@@ -65,7 +94,7 @@ def main(argv=None) -> int:
         f = scene.frames[k]
         return np.clip(render(rt, params, f.camera, f.time).host()["image"], 0, 1)
 
-    names = ("test", "training neighbours", "neighbour mean", "DIS interpolation")
+    names = ("model, test frames", "model, training neighbours", "neighbour mean", "DIS interpolation")
     sums = {n: np.zeros(3) for n in names}
     counts = {n: np.zeros(3) for n in names}
     for k in scene.test_indices:
@@ -73,24 +102,29 @@ def main(argv=None) -> int:
         im0, im1 = scene.frames[i0].image, scene.frames[i1].image
         region = np.digitize(np.linalg.norm(estimate_flow(im0, im1, "dis"), axis=-1), EDGES)   # [H, W]
         gt = scene.frames[k].image
-        pairs = [("test", rendered(k), gt), ("neighbour mean", B.mean_interpolation(im0, im1, a), gt),
+        pairs = [("model, test frames", rendered(k), gt), ("neighbour mean", B.mean_interpolation(im0, im1, a), gt),
                  ("DIS interpolation", B.dis_interpolation(im0, im1, a), gt)]
-        pairs += [("training neighbours", rendered(i), scene.frames[i].image) for i in (i0, i1) if i != k]
+        pairs += [("model, training neighbours", rendered(i), scene.frames[i].image) for i in (i0, i1) if i != k]
         for name, pred, ref in pairs:
             se = ((pred - ref) ** 2).mean(-1)
             for r in range(3):
                 sums[name][r] += se[region == r].sum()
                 counts[name][r] += (region == r).sum()
-    n_all = counts["test"].sum()
+    n_all = counts["model, test frames"].sum()
     print(f"{args.run}: {len(g)} Gaussians, step {ck.get('step', '?')}; {len(scene.test_indices)} test frames, "
           f"{scene.width}x{scene.height}")
     print("pixels per region (test frames): " + ", ".join(
-        f"{n} {c / max(n_all, 1):.3f}" for n, c in zip(REGIONS, counts["test"])))
-    print(f"{'PSNR dB':<22}" + "".join(f"{n:>8}" for n in REGIONS) + f"{'pooled':>8}")
+        f"{n} {c / max(n_all, 1):.3f}" for n, c in zip(REGIONS, counts["model, test frames"])))
+    print(f"{'PSNR dB':<28}" + "".join(f"{n:>8}" for n in REGIONS) + f"{'pooled':>8}")
     for name in names:
         ps = region_psnr(sums[name], counts[name])
         tot = region_psnr([sums[name].sum()], [counts[name].sum()])[0]
-        print(f"{name:<22}" + "".join(f"{p:8.2f}" for p in ps) + f"{tot:8.2f}")
+        print(f"{name:<28}" + "".join(f"{p:8.2f}" for p in ps) + f"{tot:8.2f}")
+
+    if args.png:
+        from endowave_cl.atomic import write_bytes_atomic
+        write_bytes_atomic(args.png, region_chart_png({n: region_psnr(sums[n], counts[n]) for n in names},
+                                                      counts["model, test frames"] / max(n_all, 1), args.title or args.run))
 
     # per-Gaussian velocity against the flow under the centre, at the training frames
     _, sigma_t, vel = motion_of(covariance_4d(g))                  # [N], [N, 3] per unit time
