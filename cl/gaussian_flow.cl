@@ -20,17 +20,9 @@
  * endowave_cl/train/device_losses.py::gaussian_flow_enqueue.  OpenCL C 1.2. */
 #include "common.h"
 
-#ifndef C
-#define C 6
-#endif
-#ifndef CF
-#define CF 6
-#endif
-#ifndef CH_DEPTH
-#define CH_DEPTH 3
-#endif
-#ifndef CH_FLOW
-#define CH_FLOW 4
+/* The channel layout comes from the host (endowave_cl/layout.py), defined there once. */
+#if !defined(C) || !defined(CF) || !defined(CH_DEPTH) || !defined(CH_FLOW)
+#error "build with -DC, -DCF, -DCH_DEPTH and -DCH_FLOW (train/device_losses.py::gaussian_flow_enqueue)"
 #endif
 
 __kernel void gaussian_flow_loss(const int n,

@@ -23,13 +23,7 @@ __kernel void project4d(
     __global int *tiles_touched,     /* [N] */
     __global float *color_inner)     /* [N, NT+1, 3] sum_k c[n, k, rgb] Y_k, for the adjoint */
 {
-#ifdef P4_VW
-    if (get_global_id(0) * VW >= n) return;
-    const P4Idx ix = p4_index(get_global_id(0), n);
-#else
-    const P4Idx ix = get_global_id(0);
-    if (ix >= n) return;
-#endif
+    P4_INDEX_OR_RETURN(ix, n);
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
     p4_forward(&cam, means, scales, quat_l, quat_r, ix, t, tiles_x, tiles_y, &s);

@@ -52,13 +52,7 @@ __kernel void project4d_bwd(
     __global float *v_sh,            /* [N, NT+1, SH_K, 3] */
     __global float *v_phase)         /* [N, NT+1] */
 {
-#ifdef P4_VW
-    if (get_global_id(0) * VW >= n) return;
-    const P4Idx ix = p4_index(get_global_id(0), n);
-#else
-    const P4Idx ix = get_global_id(0);
-    if (ix >= n) return;
-#endif
+    P4_INDEX_OR_RETURN(ix, n);
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
     const p4i vis = p4_ldi(radius, 1, 0, ix) > 0;   /* culled by the forward: skip the recomputation */

@@ -133,6 +133,10 @@ P4_FN P4Idx p4_index(int g, int n) {
     ix.lo = g * VW - ix.base;
     return ix;
 }
+/* A kernel's first line: this work-item's Gaussians (ix), or return when it has none. */
+#define P4_INDEX_OR_RETURN(ix, n)                                                                 \
+    if (get_global_id(0) * VW >= (n)) return;                                                   \
+    const P4Idx ix = p4_index(get_global_id(0), (n))
 #define P4_LD_LANE(l, s) q[stride * l]
 #define P4_ST_LANE(l, s) if (l >= ix.lo) q[stride * l] = v.s;
 #define P4_ROW_LANE(l, s) q[l]
@@ -241,6 +245,10 @@ typedef float p4f;
 typedef int p4i;
 #define P4_FN inline
 typedef int P4Idx;   /* the Gaussian */
+/* A kernel's first line: this work-item's Gaussian (ix), or return past the last one. */
+#define P4_INDEX_OR_RETURN(ix, n)                                                                 \
+    const P4Idx ix = get_global_id(0);                                                          \
+    if (ix >= (n)) return
 P4_FN float p4_ld(__global const float *p, int stride, int k, P4Idx i) { return p[stride * i + k]; }
 P4_FN int p4_ldi(__global const int *p, int stride, int k, P4Idx i) { return p[stride * i + k]; }
 P4_FN void p4_st(__global float *p, int stride, int k, P4Idx i, float v) { p[stride * i + k] = v; }
