@@ -165,3 +165,27 @@ def test_guard_checks_the_factors(rt, bad):
     fac = project4d_bwd(rt, prm, cam, 0.5, None, p, *z, dvf, sh_factors=True)["v_sh"]
     assert any_nonfinite(rt, [full]) == (bad is not None)
     assert any_nonfinite(rt, [fac]) == (bad is not None)
+
+
+def test_train_steps_equal_the_full_gradient_path(rt, tiny_scene, tmp_path, monkeypatch):
+    """Trainer.train_step (factored SH gradient) against the same steps with v_sh in full."""
+    import endowave_cl.train.trainer as trainer_module
+    from conftest import tiny_config
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import download
+    scene = load_scene(tiny_scene)
+    real = trainer_module.render_backward
+    runs = []
+    for factored in (True, False):
+        if not factored:
+            monkeypatch.setattr(trainer_module, "render_backward",
+                                lambda *a, **kw: real(*a, **{**kw, "sh_factors": False}))
+        tr = trainer_module.Trainer(scene, tiny_config(iterations=10, init_points=500, use_flow=True),
+                                    tmp_path / f"run{int(factored)}", rt, log=lambda s: None)
+        for k in scene.train_indices[:4]:
+            tr.train_step(k)
+        st = tr.adam.state_dict()
+        runs.append((download(tr.params).as_dict(), st["exp_avg"], st["exp_avg_sq"]))
+    for n in PARAM_NAMES:
+        for a, b in zip(runs[0], runs[1]):
+            assert same_bits(a[n], b[n]), n
