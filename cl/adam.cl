@@ -1,9 +1,10 @@
 /* Adam on the device: one launch updates every parameter group.
  *
- A work-item updates a run of ADAM_RUN consecutive elements of one group, as 8-wide vectors (a
+ * A work-item updates a run of ADAM_RUN consecutive elements of one group, as 8-wide vectors (a
  * group's last, shorter run element by element).  The global id runs over the concatenation of the
  * groups' runs: [0, r0) are group 0's ceil(n0 / ADAM_RUN) runs, [r0, r0 + r1) group 1's, ... (host
  * order: means, scales, quat_l, quat_r, opacity, sh, phase; see endowave_cl/ops/adam.py).
+ * -DADAM_SH_FACTORS: the sh group's gradient comes as per-Gaussian factors (adam_sh_row below).
  *
  * Per-element learning rate inside a group: an element at column c = j % row_len
  * of its row uses lr_a when c < split, else lr_b.  This gives
@@ -35,14 +36,11 @@
     }                                                                                   \
     i -= (n##k + ADAM_RUN - 1) / ADAM_RUN;
 
-inline void adam_element(__global float *p, __global const float *g, __global float *m,
-                         __global float *v, const int j, const int row, const int split,
-                         const float lra, const float lrb, const float beta1, const float beta2,
+inline void adam_element(__global float *p, const float gj, __global float *m, __global float *v,
+                         const int j, const float lr, const float beta1, const float beta2,
                          const float omb1, const float omb2, const float eps, const float inv_bc1,
                          const float inv_sqrt_bc2) {
-    const float lr = ((j % row) < split) ? lra : lrb;
     if (lr == 0.0f) return;
-    const float gj = g[j];
     const float mj = beta1 * m[j] + omb1 * gj;
     const float vj = beta2 * v[j] + omb2 * gj * gj;
     m[j] = mj;
@@ -51,17 +49,34 @@ inline void adam_element(__global float *p, __global const float *g, __global fl
     p[j] -= (lr * inv_bc1) * mj / denom;
 }
 
-/* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n: the same operations as adam_element on 8
- * lanes; frozen lanes (lr 0) store back their old values. */
+/* The same operations on elements j0 .. j0 + 7 with their gradients gj and learning rates lr;
+ * frozen lanes (lr 0) store back their old values. */
+inline void adam_update8(__global float *p, const float8 gj, __global float *m, __global float *v,
+                         const int j0, const float8 lr, const float beta1, const float beta2,
+                         const float omb1, const float omb2, const float eps, const float inv_bc1,
+                         const float inv_sqrt_bc2) {
+    const int8 frozen = lr == 0.0f;
+    const float8 m0 = load8(m + j0), v0 = load8(v + j0), p0 = load8(p + j0);
+    const float8 mj = beta1 * m0 + omb1 * gj;
+    const float8 vj = beta2 * v0 + omb2 * gj * gj;
+    const float8 denom = sqrt(vj) * inv_sqrt_bc2 + eps;
+    const float8 pj = p0 - (lr * inv_bc1) * mj / denom;
+    store8(m + j0, frozen ? m0 : mj);
+    store8(v + j0, frozen ? v0 : vj);
+    store8(p + j0, frozen ? p0 : pj);
+}
+
+/* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n (the group's last, shorter run element by
+ * element) */
 inline void adam_run(__global float *p, __global const float *g, __global float *m,
                      __global float *v, const int n, const int j0, const int row, const int split,
                      const float lra, const float lrb, const float beta1, const float beta2,
                      const float omb1, const float omb2, const float eps, const float inv_bc1,
                      const float inv_sqrt_bc2) {
-    if (j0 + ADAM_RUN > n) {   /* the group's last, shorter run */
+    if (j0 + ADAM_RUN > n) {
         for (int j = j0; j < n; j++)
-            adam_element(p, g, m, v, j, row, split, lra, lrb, beta1, beta2, omb1, omb2, eps, inv_bc1,
-                         inv_sqrt_bc2);
+            adam_element(p, g[j], m, v, j, ((j % row) < split) ? lra : lrb, beta1, beta2, omb1, omb2, eps,
+                         inv_bc1, inv_sqrt_bc2);
         return;
     }
     float lr_l[ADAM_RUN];
@@ -71,16 +86,47 @@ inline void adam_run(__global float *p, __global const float *g, __global float 
         if (++col == row) col = 0;
     }
     const float8 lr = (float8)(lr_l[0], lr_l[1], lr_l[2], lr_l[3], lr_l[4], lr_l[5], lr_l[6], lr_l[7]);
-    const int8 frozen = lr == 0.0f;
-    const float8 gj = load8(g + j0), m0 = load8(m + j0), v0 = load8(v + j0), p0 = load8(p + j0);
-    const float8 mj = beta1 * m0 + omb1 * gj;
-    const float8 vj = beta2 * v0 + omb2 * gj * gj;
-    const float8 denom = sqrt(vj) * inv_sqrt_bc2 + eps;
-    const float8 pj = p0 - (lr * inv_bc1) * mj / denom;
-    store8(m + j0, frozen ? m0 : mj);
-    store8(v + j0, frozen ? v0 : vj);
-    store8(p + j0, frozen ? p0 : pj);
+    adam_update8(p, load8(g + j0), m, v, j0, lr, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
 }
+
+#ifdef ADAM_SH_FACTORS
+#include "sh_grad.h"
+/* The sh group with its gradient as factors (cl/sh_grad.h; -DADAM_SH_FACTORS with SH_DEGREE and NT):
+ * work-item i takes Gaussian i's row of SH_NCOEF elements, forms their gradients from its SHF_SIZE
+ * factors (the products project4d_bwd would have stored: the same bits) and updates the row in
+ * runs of ADAM_RUN, the rest element by element, with the columns' learning rates as adam_run.
+ * The group's global gradient array of SH_NCOEF floats per Gaussian is never written or read. */
+inline void adam_sh_row(__global float *p, __global const float *fac, __global float *m,
+                        __global float *v, const int i, const int split, const float lra,
+                        const float lrb, const float beta1, const float beta2, const float omb1,
+                        const float omb2, const float eps, const float inv_bc1,
+                        const float inv_sqrt_bc2) {
+    float fr[SHF_SIZE], g[SH_NCOEF];
+    for (int e = 0; e < SHF_SIZE; ++e) fr[e] = fac[SHF_SIZE * i + e];
+    sh_grad_expand(fr, g);
+    const int j0 = SH_NCOEF * i;
+    int c = 0;
+    for (; c + ADAM_RUN <= SH_NCOEF; c += ADAM_RUN) {
+        float lr_l[ADAM_RUN];
+        for (int l = 0; l < ADAM_RUN; l++) lr_l[l] = c + l < split ? lra : lrb;
+        const float8 lr = (float8)(lr_l[0], lr_l[1], lr_l[2], lr_l[3], lr_l[4], lr_l[5], lr_l[6], lr_l[7]);
+        const float8 gj = (float8)(g[c], g[c + 1], g[c + 2], g[c + 3], g[c + 4], g[c + 5], g[c + 6], g[c + 7]);
+        adam_update8(p, gj, m, v, j0 + c, lr, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
+    }
+    for (; c < SH_NCOEF; c++)
+        adam_element(p, g[c], m, v, j0 + c, c < split ? lra : lrb, beta1, beta2, omb1, omb2, eps, inv_bc1,
+                     inv_sqrt_bc2);
+}
+
+/* group k given as factors: n##k / SH_NCOEF work-items, one per Gaussian */
+#define GROUP_DISPATCH_SH_FACTORS(k)                                                    \
+    if (i < n##k / SH_NCOEF) {                                                          \
+        adam_sh_row(p##k, g##k, m##k, v##k, i, split##k, lra##k, lrb##k, beta1, beta2,  \
+                    omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);                            \
+        return;                                                                         \
+    }                                                                                   \
+    i -= n##k / SH_NCOEF;
+#endif
 
 __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(3),
                         GROUP_ARGS(4), GROUP_ARGS(5), GROUP_ARGS(6),
@@ -93,7 +139,11 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
     GROUP_DISPATCH(2)
     GROUP_DISPATCH(3)
     GROUP_DISPATCH(4)
+#ifdef ADAM_SH_FACTORS
+    GROUP_DISPATCH_SH_FACTORS(5)   /* sh */
+#else
     GROUP_DISPATCH(5)
+#endif
     GROUP_DISPATCH(6)
     /* past the last group: a padding work-item, nothing to do */
 }

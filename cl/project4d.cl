@@ -59,7 +59,7 @@ __kernel void project4d(
     teash_cos_sin(phase, ix, t, cs, sn);
     p4f out[6];
     p4f acc[3] = {0.0f, 0.0f, 0.0f};
-    const int nsh = P4_NSH;
+    const int nsh = SH_NCOEF;
     p4f inner[(NT + 1) * 3];   /* [NT+1, 3] sum_k c[f, k, rgb] Y_k, k ascending */
     for (int j = 0; j < (NT + 1) * 3; ++j) inner[j] = 0.0f;
 #ifdef P4_VW

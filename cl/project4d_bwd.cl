@@ -2,7 +2,8 @@
  * (vector variant, -DP4_VW=W; project4d_common.h); recomputes the forward's geometry (p4_forward),
  * takes the colour's per-frequency SH sums from the forward (color_inner: the SH coefficients,
  * (NT+1) * SH_K * 3 floats per Gaussian, are not read again) and runs the chain rule back to the
- * parameters.  No atomics: every Gaussian writes only its own rows.
+ * parameters.  No atomics: every Gaussian writes only its own rows.  -DP4_SH_FACTORS: v_sh is
+ * stored as its per-Gaussian factors (cl/sh_grad.h), 22 floats instead of 144 at degree 3, NT 2.
  * Reference adjoint: torch autograd of endowave_cl/reference/project.py::project4d_ref.
  * Notation: v_x = dL/dx.  2x2 / 3x3 / 4x4 matrices are row-major. */
 #define P4_FORWARD_NO_RECT
@@ -49,7 +50,7 @@ __kernel void project4d_bwd(
     __global float *v_quat_l,        /* [N, 4] */
     __global float *v_quat_r,        /* [N, 4] */
     __global float *v_opacity,       /* [N] */
-    __global float *v_sh,            /* [N, NT+1, SH_K, 3] */
+    __global float *v_sh,            /* [N, NT+1, SH_K, 3]; with P4_SH_FACTORS its factors [N, SHF_SIZE] */
     __global float *v_phase)         /* [N, NT+1] */
 {
     P4_INDEX_OR_RETURN(ix, n);
@@ -62,7 +63,7 @@ __kernel void project4d_bwd(
         s.valid = s.valid & vis;
     }
     const p4i ok = s.valid;   /* (vector: culled lanes store 0 through P4_SEL from here on) */
-    const int nsh = P4_NSH;
+    const int nsh = SH_NCOEF;
     if (!P4_ANY(ok)) {
         const p4f zf = 0.0f;
         for (int k = 0; k < 4; ++k) {
@@ -70,7 +71,11 @@ __kernel void project4d_bwd(
             p4_st(v_quat_l, 4, k, ix, zf); p4_st(v_quat_r, 4, k, ix, zf);
         }
         p4_st(v_opacity, 1, 0, ix, zf);
+#ifdef P4_SH_FACTORS
+        for (int k = 0; k < SHF_SIZE; ++k) p4_st(v_sh, SHF_SIZE, k, ix, zf);
+#else
         for (int k = 0; k < nsh; ++k) p4_st(v_sh, nsh, k, ix, zf);
+#endif
         for (int f = 0; f <= NT; ++f) p4_st(v_phase, NT + 1, f, ix, zf);
         return;
     }
@@ -90,6 +95,13 @@ __kernel void project4d_bwd(
         for (int f = 0; f <= NT; ++f) acc += inner[3 * f + c] * cs[f];
         gcol[c] = (0.5f + acc > 0.0f) ? vf[c] : (p4f)(0.0f);   /* max(0, .) passes the gradient where > 0 */
     }
+#ifdef P4_SH_FACTORS
+    /* v_sh as its factors (sh_grad.h), zero in culled lanes; Adam forms the products (sh_grad_expand) */
+    for (int f = 0; f <= NT; ++f) p4_st(v_sh, SHF_SIZE, SHF_COS + f, ix, P4_SEL(ok, cs[f]));
+    for (int c = 0; c < 3; ++c) p4_st(v_sh, SHF_SIZE, SHF_GCOL + c, ix, P4_SEL(ok, gcol[c]));
+    for (int k = 0; k < SH_K; ++k) p4_st(v_sh, SHF_SIZE, SHF_Y + k, ix, P4_SEL(ok, Y[k]));
+#else
+    /* the products of sh_grad_expand (sh_grad.h) in the same order: both paths give the same bits */
     p4f gY[SH_K * 3];   /* gcol_c Y_k, shared by every frequency */
     for (int k = 0; k < SH_K; ++k)
         for (int c = 0; c < 3; ++c) gY[3 * k + c] = gcol[c] * Y[k];
@@ -105,6 +117,7 @@ __kernel void project4d_bwd(
     for (int f = 0; f <= NT; ++f)
         for (int j = 0; j < SH_K * 3; ++j) p4_st(v_sh, nsh, f * SH_K * 3 + j, ix, gY[j] * cs[f]);
 #endif
+#endif   /* P4_SH_FACTORS */
     p4_st(v_phase, NT + 1, 0, ix, (p4f)(0.0f));          /* phi_0 is unused */
     /* dL/d cos(omega_f t + phi_f) = sum_c gcol_c inner_fc;  d cos(a)/d phi = -sin(a) */
     for (int f = 1; f <= NT; ++f)

@@ -5,7 +5,7 @@
  *   v -> v * q, with (x, y, z, t) read as the quaternion (w, x, y, z).  4x4 matrices are row-major.
  * - Culled Gaussians: see p4_forward.
  * Build options (-D): SH_DEGREE, NT (temporal frequencies), CHANNELS, TEASH_PERIOD, MARGINAL_CULL,
- * and P4_VW for the vector variant.
+ * P4_VW for the vector variant, and P4_SH_FACTORS (project4d_bwd: the SH gradient as factors, sh_grad.h).
  *
  * Two variants of the same maths (endowave_cl/ops/project.py chooses one from the device queries):
  * - scalar (P4_VW undefined): one Gaussian per work-item, p4f = float; the GPU path.
@@ -22,14 +22,7 @@
 #define ENDOWAVE_PROJECT4D_COMMON_H
 #include "common.h"
 
-#ifndef SH_DEGREE
-#define SH_DEGREE 3
-#endif
-#define SH_K ((SH_DEGREE + 1) * (SH_DEGREE + 1))   /* SH bases per temporal frequency */
-#ifndef NT
-#define NT 2
-#endif
-#define P4_NSH ((NT + 1) * SH_K * 3)   /* SH coefficients per Gaussian */
+#include "sh_grad.h"   /* SH_DEGREE, SH_K, NT, SH_NCOEF, the factored SH gradient */
 #ifndef CHANNELS
 #define CHANNELS 6
 #endif
@@ -123,7 +116,7 @@ typedef struct {
 #error "P4_VW must be 2, 4, 8 or 16"
 #endif
 
-#define P4_NBLK (P4_NSH / VW)              /* whole blocks of VW SH coefficients per Gaussian */
+#define P4_NBLK (SH_NCOEF / VW)            /* whole blocks of VW SH coefficients per Gaussian */
 #define P4_NSH_ARR (P4_NBLK > 0 ? P4_NBLK * VW : 1)   /* size of an array of them (never 0) */
 
 /* the Gaussians of work-item g of n (n >= VW) */

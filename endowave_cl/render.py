@@ -88,7 +88,7 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
                     v_gaussian_features=None,
                     densify_stats: Optional[Dict[str, object]] = None, timed: bool = False,
-                    deterministic: Optional[bool] = None) -> Dict[str, object]:
+                    deterministic: Optional[bool] = None, sh_factors: bool = False) -> Dict[str, object]:
     """Gradients of every parameter from the gradient images.
 
     v_features: cla [H, W, C] gradient of the loss w.r.t. the composited channels;
@@ -100,6 +100,8 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     instead of float atomics; see ops/rasterize.py). None: on for devices without a reported SIMT
     width (CPU drivers, where it is also the faster mode: tools/bench_render.py times both), off
     on SIMT devices (GPUs), whose atomics are cheap.
+    sh_factors: v_sh as an ops.project.ShGradFactors (its per-Gaussian factors; the training step
+    passes it to DeviceAdam) instead of the full [N, NT+1, K, 3] array.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
@@ -127,6 +129,6 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
         from .ops.util import add_inplace
         add_inplace(rt, v2d["v_features"], v_gaussian_features)
     grads = project4d_bwd(rt, params, cam, out.t, out.t_flow, p, v2d["v_means2d"], v2d["v_conic"],
-                          v2d["v_opac"], v2d["v_features"])
+                          v2d["v_opac"], v2d["v_features"], sh_factors=sh_factors)
     _tick(rt, out.timings, "project_bwd", t0, timed)
     return grads

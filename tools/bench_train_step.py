@@ -3,7 +3,8 @@
 
 Uses the shared real EndoNeRF frames when present (../shared/data/endonerf/pulling_soft_tissues),
 else a synthetic scene of the same size. Prints the median over --runs steps after --warmup steps,
-with the per-part split (each part followed by a queue finish), the device and the sizes; then
+with the per-part split (each part followed by a queue finish; project_bwd is timed inside the
+adjoints, guard is the gradients' NaN / Inf check), the device and the sizes; then
 the median of as many Trainer.train_step calls (the step as training runs it: no finish between
 the parts, its own read-backs and the NaN guard).
 
@@ -37,10 +38,14 @@ def main(argv=None):
     ap.add_argument("--downscale", type=float, default=1.0, help="frame size divisor (2: 320x256)")
     ap.add_argument("--no-flow", action="store_true")
     ap.add_argument("--no-wavelet", action="store_true")
+    ap.add_argument("--full-sh", action="store_true",
+                    help="per-part steps: the adjoint writes v_sh in full for Adam and the NaN guard "
+                         "(the training step passes it as factors)")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
 
     from endowave_cl.data.scene import load_scene
+    from endowave_cl.ops.util import nonfinite_flag
     from endowave_cl.render import render, render_backward
     from endowave_cl.runtime import get_runtime
     from endowave_cl.train.config import TrainConfig
@@ -63,7 +68,8 @@ def main(argv=None):
         print(f"scene: {scene_path} ({scene.width}x{scene.height}), {n} Gaussians, losses: rgb"
               f"{', depth' if cfg.use_depth and scene.has_depth else ''}{', flow' if cfg.use_flow else ''}"
               f"{', wavelet' if cfg.use_wavelet else ''}; median of {args.runs} steps after {args.warmup}")
-        parts = {"render": [], "losses": [], "backward": [], "adam": [], "step": []}
+        parts = {"render": [], "losses": [], "backward": [], "project_bwd": [], "guard": [], "adam": [],
+                 "step": []}   # project_bwd: part of backward
         cpu = []   # CPU seconds per step, all threads (moves much less than wall time under load)
 
         def cpu_s():
@@ -82,17 +88,21 @@ def main(argv=None):
             total, _, v = tr.losses_and_gradient(out, tgt)
             rt.queue.finish()
             t2 = time.perf_counter()
-            grads = render_backward(rt, tr.params, out, v, densify_stats=tr.stats)
+            grads = render_backward(rt, tr.params, out, v, densify_stats=tr.stats, timed=True,
+                                    sh_factors=not args.full_sh)
             rt.queue.finish()
             t3 = time.perf_counter()
+            nonfinite_flag(rt, grads.values()).get()   # the NaN guard's check (train_step reads it with the sums)
+            t3g = time.perf_counter()
             tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0))
             rt.queue.finish()
             t4 = time.perf_counter()
             if i >= args.warmup:
                 cpu.append(cpu_s() - c0)
-                for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("adam", t3, t4),
-                                  ("step", t0, t4)):
+                for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("guard", t3, t3g),
+                                  ("adam", t3g, t4), ("step", t0, t4)):
                     parts[key].append(b - a)
+                parts["project_bwd"].append(out.timings["project_bwd"] * 1e-3)
         for key, ts in parts.items():
             print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
         print(f"  CPU time per step (all threads) {statistics.median(cpu) * 1e3:.1f} ms "

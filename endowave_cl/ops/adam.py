@@ -123,7 +123,9 @@ class DeviceAdam:
 
     # -- the update ---------------------------------------------------------------------------
     def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None) -> None:
-        """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept."""
+        """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept.
+        grads["sh"] may be an ops.project.ShGradFactors (render_backward(..., sh_factors=True)):
+        the kernel forms the SH gradient from its factors, the same values as the full array."""
         if lrs:
             self.lrs.update({k: float(v) for k, v in lrs.items()})
         step = self.step_count + 1  # counted once the arguments are valid
@@ -131,11 +133,13 @@ class DeviceAdam:
         inv_bc1 = 1.0 / (1.0 - b1 ** step)
         inv_sqrt_bc2 = 1.0 / math.sqrt(1.0 - b2 ** step)
         args = []
+        options = []   # adam.cl build options
         total = runs = 0
         for n in PARAM_NAMES:
             p = self.params[n]
             row, split, lra, lrb = group_lr_layout(n, p.shape, self.lrs)
             count = int(p.size)
+            factored = False
             g = grads.get(n) if hasattr(grads, "get") else grads[n]
             if g is None:
                 if count and (lra != 0.0 or lrb != 0.0):
@@ -146,12 +150,17 @@ class DeviceAdam:
                 if tuple(g.shape) != tuple(p.shape) or g.dtype != np.float32:
                     raise EndowaveError(f"Adam: gradient of {n!r} has shape {tuple(g.shape)} {g.dtype}, "
                                         f"parameter has {tuple(p.shape)} float32")
-                gbuf = self._buf(g)
+                factored = n == "sh" and hasattr(g, "factors")   # ops.project.ShGradFactors
+                if factored:
+                    options = ["-DADAM_SH_FACTORS", f"-DSH_DEGREE={int(round(math.sqrt(g.K))) - 1}",
+                               f"-DNT={g.nt}"]
+                gbuf = self._buf(g.factors if factored else g)
             args += [self._buf(p), gbuf, self._buf(self.exp_avg[n]), self._buf(self.exp_avg_sq[n]),
                      np.int32(count), np.int32(max(row, 1)), np.int32(split),
                      np.float32(lra), np.float32(lrb)]
             total += count
-            runs += -(-count // ADAM_RUN)
+            # a factored sh gradient: one work-item per Gaussian (cl/adam.cl adam_sh_row)
+            runs += count // row if factored else -(-count // ADAM_RUN)
         if total > MAX_ELEMENTS:
             raise EndowaveError(f"Adam: {total} parameters exceed the kernel's int index range")
         self.step_count = step
@@ -159,7 +168,7 @@ class DeviceAdam:
             return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
                  np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
-        self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step"), runs, WORK_GROUP, *args)
+        self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args)
 
     def reset_moments(self, name: str) -> None:
         """Zero one group's moments (3DGS does this for opacity at an opacity reset)."""

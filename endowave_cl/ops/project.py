@@ -88,6 +88,39 @@ class Projected:
         return int(self.radius.shape[0])
 
 
+@dataclass
+class ShGradFactors:
+    """The gradient of the SH coefficients, v_sh [N, NT+1, K, 3], as per-Gaussian factors
+    (cl/sh_grad.h): v_sh[i, f, k, c] = (gcol[i, c] Y[i, k]) cos[i, f], zero rows for culled Gaussians.
+    factors [N, NT + 4 + K] float32, each row cos_f (f = 0..NT), gcol_c (c = 0..2), Y_k (k = 0..K-1)
+    (SHF_* in cl/sh_grad.h).  DeviceAdam forms the products in its kernel, and the NaN guard
+    (ops.util.nonfinite_flag) checks the factors; ``get`` forms them on the host (the same float32
+    products: the same bits as project4d_bwd's full v_sh)."""
+    factors: cla.Array
+    nt: int
+    K: int
+
+    @property
+    def shape(self):
+        return (int(self.factors.shape[0]), self.nt + 1, self.K, 3)
+
+    @property
+    def dtype(self):
+        return self.factors.dtype
+
+    def get(self) -> np.ndarray:
+        f = self.factors.get()
+        nt = self.nt
+        cos, gcol, Y = f[:, :nt + 1], f[:, nt + 1:nt + 4], f[:, nt + 4:]
+        gY = gcol[:, None, :] * Y[:, :, None]                 # [N, K, 3]
+        return gY[:, None, :, :] * cos[:, :, None, None]    # [N, NT+1, K, 3]
+
+
+def sh_factor_width(nt: int, K: int) -> int:
+    """Factors per Gaussian of a ShGradFactors (SHF_SIZE in cl/sh_grad.h)."""
+    return nt + 4 + K
+
+
 def _dims(params):
     sh = params["sh"]
     n = int(params["means"].shape[0])
@@ -162,19 +195,26 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
 
 def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Optional[float],
                   proj: Projected, v_means2d: cla.Array, v_conic: cla.Array, v_opac: cla.Array,
-                  v_features: cla.Array) -> Dict[str, cla.Array]:
+                  v_features: cla.Array, sh_factors: bool = False) -> Dict[str, cla.Array]:
     """Adjoint of project4d: gradients of every parameter (zero for culled Gaussians).
 
     v_means2d [N, 2], v_conic [N, 3], v_opac [N], v_features [N, C] ->
     v_means [N, 4], v_scales [N, 4], v_quat_l [N, 4], v_quat_r [N, 4], v_opacity [N],
     v_sh [N, NT+1, K, 3], v_phase [N, NT+1].  The SH view direction is not differentiated.
+    sh_factors: v_sh comes as a ShGradFactors (NT + 4 + K floats per Gaussian instead of
+    3 (NT + 1) K), for DeviceAdam, which forms the same values.
     """
     n, nt, K, degree = _dims(params)
     q = rt.queue
     al = rt.pool()
     shapes = {"v_means": (n, 4), "v_scales": (n, 4), "v_quat_l": (n, 4), "v_quat_r": (n, 4),
               "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
+    if sh_factors:
+        shapes["v_sh"] = (n, sh_factor_width(nt, K))
     grads = {k: cla.empty(q, s, np.float32, allocator=al) for k, s in shapes.items()}
+    sh_buf = grads["v_sh"]
+    if sh_factors:
+        grads["v_sh"] = ShGradFactors(sh_buf, nt, K)
     if n == 0:
         return grads
     _check_params(params, n)
@@ -187,14 +227,15 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
         # of lanes floats is aligned to its size (rows a multiple of lanes floats, buffer aligned)
         vbytes = 4 * lanes
         base_align = int(getattr(rt.device, "mem_base_addr_align", 0) or 0) // 8
-        ok = ((nt + 1) * K * 3) % lanes == 0 and base_align % vbytes == 0 and grads["v_sh"].offset % vbytes == 0
-        return ["-DP4_NT_STORE=1"] if ok else []
-    _launch(rt, "project4d_bwd.cl", "project4d_bwd", _options(rt, degree, nt, channels), n,
+        ok = ((nt + 1) * K * 3) % lanes == 0 and base_align % vbytes == 0 and sh_buf.offset % vbytes == 0
+        return ["-DP4_NT_STORE=1"] if ok and not sh_factors else []
+    opts = _options(rt, degree, nt, channels) + (["-DP4_SH_FACTORS"] if sh_factors else [])
+    _launch(rt, "project4d_bwd.cl", "project4d_bwd", opts, n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, proj.color_inner.data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
                  np.int32(t_flow is not None), np.int32(tiles_x), np.int32(tiles_y),
                  proj.radius.data, v_means2d.data, v_conic.data, v_opac.data, v_features.data,
                  grads["v_means"].data, grads["v_scales"].data, grads["v_quat_l"].data, grads["v_quat_r"].data,
-                 grads["v_opacity"].data, grads["v_sh"].data, grads["v_phase"].data, vec_opts=nt_store)
+                 grads["v_opacity"].data, sh_buf.data, grads["v_phase"].data, vec_opts=nt_store)
     return grads

@@ -11,12 +11,18 @@ READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer start
 
 def nonfinite_flag(rt, arrays, flag=None):
     """Enqueue the NaN / Inf check of the given float32 device arrays, without reading it:
-    returns flag (cla int32 [1], zeroed here when not given), 1 when any element is not finite."""
+    returns flag (cla int32 [1], zeroed here when not given), 1 when any element is not finite.
+
+    A factored SH gradient (ops.project.ShGradFactors) is checked through its factors: its values
+    (gcol_c Y_k) cos_f are non-finite exactly when a factor is, since every factor enters some
+    product (a NaN or Inf factor makes it NaN or Inf, 0 x Inf included) and |Y_k| <= 1, |cos_f| <= 1,
+    so finite factors cannot overflow."""
     import pyopencl.array as cla
     if flag is None:
         flag = cla.zeros(rt.queue, (1,), np.int32)
     k = rt.kernel("util.cl", "any_nonfinite_f32")
     for a in arrays:
+        a = getattr(a, "factors", a)   # ShGradFactors
         if a.size == 0:
             continue
         rt.launch_1d(k, a.size, WORK_GROUP, a.data, np.int32(a.size), flag.data)

@@ -143,7 +143,8 @@ class Trainer:
         pending = self.losses_enqueue(out, tgt)                                          # losses
         grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
                                 v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
-                                deterministic=True if self.cfg.deterministic else None)
+                                deterministic=True if self.cfg.deterministic else None,
+                                sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
         host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
         total, parts = pending.finish(host)
         self._check_finite(total, bool(host["nonfinite"][0]), k)
