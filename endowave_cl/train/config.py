@@ -49,6 +49,9 @@ class TrainConfig:
                                     # (train/motion.py linear_lifetime; docs/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
+    between_prob: float = 0.0       # fraction of steps spent at a random time between two training
+                                    # frames, supervised by the frame their flow predicts there where
+                                    # the flow is trusted (train/between.py; docs/QUALITY.md)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
@@ -184,7 +187,7 @@ RANGES = {
     "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

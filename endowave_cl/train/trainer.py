@@ -85,6 +85,8 @@ class Trainer:
             self.adam.load_state_dict(ck["adam_state"])
         self._reset_stats()
         self.targets = self._prepare_targets()
+        from .between import BetweenSampler
+        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {})
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
@@ -111,7 +113,7 @@ class Trainer:
         """Pseudo ground-truth flow of the training pairs, {k: FlowPair} (cached on disk), when the
         flow loss or the moving initialisation needs it."""
         c = self.cfg
-        if not (c.use_flow or c.init_velocity):
+        if not (c.use_flow or c.init_velocity or c.between_prob > 0):
             return {}
         from ..data.flow import flow_for_scene
         return dict(flow_for_scene(self.scene, method=c.flow_method, progress=False))
@@ -137,29 +139,45 @@ class Trainer:
         Two blocking reads: the binning's pair count (it sizes the sort's buffers), and, before
         Adam, one read-back of the step's scalars: the loss sums and the NaN / Inf flag of the
         gradients.  The camera is uploaded once (project4d; project4d_bwd reuses its buffer)."""
-        from ..ops.util import nonfinite_flag, read_back
         frame, tgt = self.scene.frames[k], self.targets[k]
-        out = render(self.rt, self.params, frame.camera, frame.time, tgt.next_time)        # forward
-        pending = self.losses_enqueue(out, tgt)                                          # losses
+        return self._step(frame.camera, frame.time, tgt.next_time, tgt.dev, f"frame {k}")
+
+    def train_step_between(self) -> Optional[Dict[str, float]]:
+        """One optimisation step at a time between two training frames, supervised by the frame the
+        pair's flow predicts there (train/between.py); None when the drawn target has no trusted
+        pixel (nothing was done)."""
+        drawn = self._between.draw(self.rng)
+        if drawn is None:
+            return None
+        camera, t, dev = drawn
+        return self._step(camera, t, None, dev, f"time {t:.4f}")
+
+    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str) -> Dict[str, float]:
+        """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam."""
+        from ..ops.util import nonfinite_flag, read_back
+        out = render(self.rt, self.params, camera, t, t_next)                            # forward
+        pending = self.losses_enqueue(out, dev)                                          # losses
         grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
                                 v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
                                 deterministic=True if self.cfg.deterministic else None,
                                 sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
         host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
         total, parts = pending.finish(host)
-        self._check_finite(total, bool(host["nonfinite"][0]), k)
+        self._check_finite(total, bool(host["nonfinite"][0]), what)
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step))  # Adam (v_means -> means)
         self.step += 1
         return parts
 
-    def losses_enqueue(self, out, tgt: FrameTargets):
-        """The step's losses enqueued on the device (train/device_losses.py): a PendingLosses with
-        the gradient image v_features [H, W, C], the per-Gaussian flow loss's gradient
-        v_gaussian_features [N, C] and the sums the host reads back."""
+    def losses_enqueue(self, out, dev):
+        """The step's losses against dev (device_losses.DeviceTargets; a FrameTargets is accepted
+        too) enqueued on the device (train/device_losses.py): a PendingLosses with the gradient image
+        v_features [H, W, C], the per-Gaussian flow loss's gradient v_gaussian_features [N, C] and
+        the sums the host reads back."""
         from .device_losses import gaussian_flow_enqueue, image_losses_enqueue
+        dev = getattr(dev, "dev", dev)
         channels = {"depth": DEPTH, "flow": FLOW.start}
-        pending = image_losses_enqueue(self.rt, out.features, tgt.dev, self.cfg, channels, self.wavelet_config)
-        return gaussian_flow_enqueue(self.rt, out, tgt.dev, self.cfg, channels, pending)
+        pending = image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config)
+        return gaussian_flow_enqueue(self.rt, out, dev, self.cfg, channels, pending)
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
@@ -176,13 +194,13 @@ class Trainer:
             self._wcfg = self.cfg.wavelet_config()
         return self._wcfg
 
-    def _check_finite(self, total: float, grads_nonfinite: bool, k: int):
+    def _check_finite(self, total: float, grads_nonfinite: bool, what: str):
         bad = [] if math.isfinite(total) else ["loss"]
         if grads_nonfinite:
             bad.append("gradients")
         if bad:
             raise self._run.fail(self, TrainingDiverged(
-                f"step {self.step} (frame {k}): non-finite {', '.join(bad)}; the step was not applied. "
+                f"step {self.step} ({what}): non-finite {', '.join(bad)}; the step was not applied. "
                 f"Try lower learning rates"))
 
     # ------------------------------------------------------------------ density control
@@ -270,10 +288,14 @@ class Trainer:
                 bar.write(f"time budget of {c.minutes:g} min reached at step {self.step}")
                 break
             t_step = time.perf_counter()
-            k = order[int(self.rng.integers(len(order)))]
-            parts = self.train_step(k)
+            between = None
+            if self._between and self.rng.random() < c.between_prob:
+                between = self.train_step_between()      # an in-between time (train/between.py)
+            if between is None:
+                parts = self.train_step(order[int(self.rng.integers(len(order)))])
+                # the log and the divergence guard follow the training frames only
+                ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
             step_times.append(time.perf_counter() - t_step)
-            ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
             s = self.step
             if c.densify_from <= s <= c.densify_until and s % c.densify_every == 0:
                 self.densify()
@@ -282,7 +304,7 @@ class Trainer:
                 self._run.guard.reset_reference(s)   # the PSNR dips on purpose
             if budget is not None and self._replan(budget, step_times, bar):
                 bar.total = c.iterations
-            if s % c.log_every == 0 or s == c.iterations:
+            if (s % c.log_every == 0 or s == c.iterations) and ema is not None:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
                 self.history.append({"step": s, **{k2: float(v) for k2, v in ema.items()},
                                      "gaussians": len(self.params["means"])})

@@ -1,0 +1,73 @@
+"""Supervision at times between two training frames, from the training pair's own flow.
+
+A training step renders only at the training frames' times, so nothing says what the model shows
+in between: its Gaussians may fit each frame on its own (noise and compression artefacts too) and
+blend those fits between frames, which is what the test frames then see (docs/QUALITY.md).  The
+pseudo ground-truth flow of every training pair (k, k') is known before training, so the frame at a
+time fraction s between them can be predicted, as a flow interpolator does:
+
+    W0(p) = I_k(p - s F_kk'(p)),  W1(p) = I_k'(p - (1 - s) F_k'k(p)),  target = (1 - s) W0 + s W1
+
+(``baselines.warp_backward``, the same warp the DIS baseline uses).  Such a target is only as good
+as its flow, so it is supervised only where the flow of both directions passed its consistency
+check (and, with tool masks, where both frames show tissue): where the flow failed (fast tools,
+occlusions) the in-between time is left free.  The step uses the colour losses (L1, D-SSIM,
+wavelet) and no depth or flow term.  Pairs whose two cameras differ are not used: an image-space
+warp predicts nothing for a moving camera.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..baselines import warp_backward
+
+
+def _same_camera(a, b) -> bool:
+    return (a.width == b.width and a.height == b.height
+            and np.allclose([a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy])
+            and np.allclose(np.asarray(a.viewmat, np.float64), np.asarray(b.viewmat, np.float64), atol=1e-6))
+
+
+def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
+    """The training pairs (data.flow.FlowPair) whose two frames share the camera, in frame order."""
+    return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
+
+
+def between_target(scene, pair, s: float) -> Tuple[np.ndarray, np.ndarray, float]:
+    """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
+    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere."""
+    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+    w0 = warp_backward(f0.image, pair.flow, s)
+    w1 = warp_backward(f1.image, pair.flow_bw, 1.0 - s)
+    image = ((1.0 - s) * w0 + s * w1).astype(np.float32)
+    weight = (np.asarray(pair.valid, np.float32) > 0.5) & (np.asarray(pair.valid_bw, np.float32) > 0.5)
+    weight = weight.astype(np.float32)
+    for f, flow, frac in ((f0, pair.flow, s), (f1, pair.flow_bw, 1.0 - s)):
+        if f.mask is not None:
+            weight *= (warp_backward(np.asarray(f.mask, np.float32)[..., None].repeat(3, -1), flow, frac)[..., 0]
+                       > 0.5).astype(np.float32)
+    t = (1.0 - s) * float(f0.time) + s * float(f1.time)
+    return image, weight, t
+
+
+class BetweenSampler:
+    """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
+    uniformly, then s uniformly in (0, 1)."""
+
+    def __init__(self, rt, scene, flows: Dict[int, object]):
+        self.rt, self.scene = rt, scene
+        self.pairs = usable_pairs(scene, flows)
+
+    def __bool__(self) -> bool:
+        return bool(self.pairs)
+
+    def draw(self, rng: np.random.Generator):
+        from .device_losses import prepare_targets
+        pair = self.pairs[int(rng.integers(len(self.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        image, weight, t = between_target(self.scene, pair, s)
+        if not weight.any():
+            return None
+        return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)

@@ -1,0 +1,98 @@
+"""Supervision between training frames (train/between.py): the predicted frame against an exact
+translation, the trust mask, the camera rule, and a trainer step at an in-between time."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import tiny_config
+
+
+def _textured(H=40, W=56, seed=0):
+    import cv2
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.uniform(0, 1, (H + 40, W + 40, 3)).astype(np.float32), (0, 0), 2.5)
+    return (tex - tex.min()) / (tex.max() - tex.min())
+
+
+def _shifted(tex, dx, dy, H, W):
+    import cv2
+    M = np.float32([[1, 0, -20 + dx], [0, 1, -20 + dy]])
+    return cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_LINEAR)
+
+
+def _scene_and_pair(shift=(2.0, -1.0), H=40, W=56, mask=None):
+    from endowave_cl.camera import Camera
+    from endowave_cl.data.flow import FlowPair
+    from endowave_cl.data.scene import Frame, Scene
+    tex = _textured(H, W)
+    cam = Camera(width=W, height=H, fx=50.0, fy=50.0, cx=W / 2, cy=H / 2, viewmat=np.eye(4, dtype=np.float32))
+    frames = [Frame(i, i / 2, _shifted(tex, shift[0] * i, shift[1] * i, H, W), None, mask, cam) for i in range(3)]
+    scene = Scene(path=None, frames=frames, train_indices=[0, 2], test_indices=[1], near=0.1, far=10.0,
+                  width=W, height=H, has_depth=False, has_masks=mask is not None)
+    fw = np.broadcast_to(np.float32([2 * shift[0], 2 * shift[1]]), (H, W, 2)).copy()
+    ones = np.ones((H, W), np.float32)
+    return scene, FlowPair(0, 2, fw, ones.copy(), -fw, ones.copy()), tex
+
+
+def test_between_target_is_the_translated_frame():
+    from endowave_cl.train.between import between_target
+    scene, pair, tex = _scene_and_pair()
+    image, weight, t = between_target(scene, pair, 0.5)
+    assert t == pytest.approx(0.5)
+    inner = (slice(6, -6), slice(6, -6))        # away from the borders the warp repeats
+    np.testing.assert_allclose(image[inner], scene.frames[1].image[inner], atol=2e-3)
+    assert weight.min() == 1.0
+    # a quarter of the way: the texture moved a quarter of the pair's displacement
+    image, _, t = between_target(scene, pair, 0.25)
+    assert t == pytest.approx(0.25)
+    want = _shifted(tex, 0.5 * 2.0, 0.5 * -1.0, *image.shape[:2])
+    np.testing.assert_allclose(image[inner], want[inner], atol=2e-3)
+
+
+def test_between_target_trusts_only_consistent_flow_and_tissue():
+    from endowave_cl.train.between import between_target
+    H, W = 40, 56
+    mask = np.ones((H, W), np.float32)
+    mask[:, :10] = 0.0                                   # a tool along the left border
+    scene, pair, _ = _scene_and_pair(shift=(0.0, 0.0), mask=mask)
+    pair.valid[5:9, 20:30] = 0.0                         # forward check failed here
+    pair.valid_bw[30:33, 40:45] = 0.0                    # backward check failed here
+    _, weight, _ = between_target(scene, pair, 0.5)
+    assert weight[5:9, 20:30].max() == 0.0 and weight[30:33, 40:45].max() == 0.0
+    assert weight[:, :10].max() == 0.0                   # no supervision on the tool
+    assert weight[20:25, 15:20].min() == 1.0
+
+
+def test_pairs_with_a_moving_camera_are_not_used():
+    from endowave_cl.train.between import usable_pairs
+    scene, pair, _ = _scene_and_pair()
+    assert usable_pairs(scene, {0: pair}) == [pair]
+    moved = np.eye(4, dtype=np.float32)
+    moved[0, 3] = 0.1
+    scene.frames[2] = dataclasses.replace(scene.frames[2],
+                                          camera=dataclasses.replace(scene.frames[2].camera, viewmat=moved))
+    assert usable_pairs(scene, {0: pair}) == []
+
+
+@pytest.mark.slow
+def test_trainer_steps_between_frames(rt, tiny_scene, tmp_path):
+    """between_prob = 1: every step renders at an in-between time; the parameters change and the
+    loop still logs from its training frames."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import download
+    from endowave_cl.train.trainer import Trainer
+    scene = load_scene(tiny_scene)
+    tr = Trainer(scene, tiny_config(iterations=6, init_points=2000, between_prob=1.0, densify_from=1000,
+                                    log_every=1), tmp_path / "run", rt, log=lambda s: None)
+    assert tr._between
+    before = download(tr.params).sh.copy()
+    times = []
+    real_step = tr._step
+    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real_step(cam, t, t_next, dev, what))[1]
+    tr.train(progress=False)
+    train_times = {scene.frames[k].time for k in scene.train_indices}
+    assert len(times) == 6 and not any(t in train_times for t in times)
+    assert not np.array_equal(download(tr.params).sh, before)
