@@ -8,12 +8,13 @@ time fraction s between them can be predicted, as a flow interpolator does:
 
     W0(p) = I_k(p - s F_kk'(p)),  W1(p) = I_k'(p - (1 - s) F_k'k(p)),  target = (1 - s) W0 + s W1
 
-(``baselines.warp_backward``, the same warp the DIS baseline uses).  Such a target is only as good
-as its flow, so it is supervised only where the flow of both directions passed its consistency
-check (and, with tool masks, where both frames show tissue): where the flow failed (fast tools,
-occlusions) the in-between time is left free.  The step uses the colour losses (L1, D-SSIM,
-wavelet) and no depth or flow term.  Pairs whose two cameras differ are not used: an image-space
-warp predicts nothing for a moving camera.
+(``baselines.warp_backward``, the same warp the DIS baseline uses).  Every pixel is supervised,
+also where the flow failed its forward-backward check: there the target degrades towards a blend of
+the two frames, which still bounds what the model may show in between (supervising only the
+trusted pixels measured 0.25 dB lower on the pulling frames, docs/QUALITY.md).  With tool masks,
+only pixels that show tissue in both warped frames are supervised.  The step uses the colour
+losses (L1, D-SSIM, wavelet) and no depth or flow term.  Pairs whose two cameras differ are not
+used: an image-space warp predicts nothing for a moving camera.
 """
 from __future__ import annotations
 
@@ -42,8 +43,7 @@ def between_target(scene, pair, s: float) -> Tuple[np.ndarray, np.ndarray, float
     w0 = warp_backward(f0.image, pair.flow, s)
     w1 = warp_backward(f1.image, pair.flow_bw, 1.0 - s)
     image = ((1.0 - s) * w0 + s * w1).astype(np.float32)
-    weight = (np.asarray(pair.valid, np.float32) > 0.5) & (np.asarray(pair.valid_bw, np.float32) > 0.5)
-    weight = weight.astype(np.float32)
+    weight = np.ones(image.shape[:2], np.float32)
     for f, flow, frac in ((f0, pair.flow, s), (f1, pair.flow_bw, 1.0 - s)):
         if f.mask is not None:
             weight *= (warp_backward(np.asarray(f.mask, np.float32)[..., None].repeat(3, -1), flow, frac)[..., 0]
