@@ -61,7 +61,8 @@ def run_one(scene_path, downscale, seed, overrides, minutes, out_root):
     tr = Trainer(scene, cfg, Path(out_root) / f"seed{seed}", rt, log=lambda s: None, resume=False)
     fin = tr.train(progress=False)
     m = evaluate_run(rt, tr.params, scene, fps_runs=0, with_lpips=True, with_baselines=True)
-    m.pop("per_frame", None)
+    per_frame = m.pop("per_frame", None) or []
+    m["per_frame_psnr"] = {int(r["index"]): round(float(r["model"]["psnr"]), 3) for r in per_frame}
     m.update(train_psnr=train_frame_psnr(rt, tr.params, scene), steps=fin["step"], gaussians=fin["gaussians"],
              train_seconds=fin["train_seconds"], seed=seed, history=[(h["step"], h.get("psnr")) for h in tr.history])
     return m

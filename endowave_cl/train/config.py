@@ -49,9 +49,9 @@ class TrainConfig:
                                     # (train/motion.py linear_lifetime; docs/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
-    between_prob: float = 0.0       # fraction of steps spent at a random time between two training
-                                    # frames, supervised by the frame their flow predicts there where
-                                    # the flow is trusted (train/between.py; docs/QUALITY.md)
+    between_prob: float = 0.3       # fraction of steps spent at a random time between two training
+                                    # frames, supervised by the frame the pair's flow predicts there
+                                    # (train/between.py); 0: training frames only (docs/QUALITY.md)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
