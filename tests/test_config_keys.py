@@ -23,7 +23,7 @@ from endowave_cl.gaussians import Gaussians
 from endowave_cl.train.config import TrainConfig, load_config
 from endowave_cl.train.densify import densify_and_prune, logit
 
-QUICK = dict(init_points=50, use_flow=False, init_velocity=False)   # cheap trainers: no flow to compute
+QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0)   # cheap trainers: no flow
 
 
 @pytest.fixture(scope="module")
@@ -342,6 +342,18 @@ def _gaussian_flow_effect(scene, rt, tmp_path):
     assert parts[0.5]["total"] - parts[0.0]["total"] == pytest.approx(0.5 * parts[0.5]["flow_gaussian"], rel=1e-4)
 
 
+def _between_prob(scene, rt, tmp_path):
+    """between_prob: the fraction of steps rendered between two training frames (0: none, 1: all)."""
+    train_times = {scene.frames[k].time for k in scene.train_indices}
+    for prob, want in ((0.0, 0), (1.0, 4)):
+        tr = _trainer(scene, rt, tmp_path / str(prob), iterations=4, between_prob=prob, densify_from=100)
+        times = []
+        real = tr._step
+        tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
+        tr.train(progress=False)
+        assert len(times) == 4 and sum(t not in train_times for t in times) == want
+
+
 def _loss_effect(key, value, what):
     def check(scene, rt, tmp_path):
         what(_losses(rt, TrainConfig()), _losses(rt, TrainConfig(**{key: value})))
@@ -420,6 +432,7 @@ CHECKS = {
     "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
     "lambda_flow_gaussian": _gaussian_flow_effect,
+    "between_prob": _between_prob,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -2,6 +2,7 @@
 """Loss ablation, as in the paper's ablation table, over several seeds and beside the baselines.
 
 Trains the defaults ("full") and the same run with one loss removed (flow, wavelet, depth), or
+without the steps between training frames (no_between: between_prob 0), or
 with the optional per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one
 scene, for each seed; evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the
 neighbour-mean and DIS-interpolation baselines, the rendered flow's EPE where the scene has gt_flow/,
@@ -25,7 +26,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # quality_run
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
-            "no_depth": {"use_depth": "false"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"}}
+            "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"}}
 
 
 def depth_error(rt, params, scene) -> float:
@@ -61,7 +62,7 @@ def main(argv=None):
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--iterations", type=int, default=0, help="steps per run (0: the config's default)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--variants", default="full,no_flow,no_wavelet,no_depth")
+    ap.add_argument("--variants", default="full,no_between,no_flow,no_wavelet,no_depth")
     ap.add_argument("--out", required=True)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args(argv)
