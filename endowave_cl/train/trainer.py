@@ -8,6 +8,10 @@ One step (``Trainer.train_step``) follows ../shared/DESIGN.md's data flow:
     render_backward                                       (rasterize_bwd -> project4d_bwd)
     Adam                                                  (one fused OpenCL kernel)
 
+A fraction ``between_prob`` of the steps (``Trainer.train_step_between``) runs the same step at a
+random time between two training frames, against the frame their flow predicts there
+(train/between.py).
+
 Parameters, Adam moments, the rendered images and every frame's targets stay on the device; per
 step the host reads the binning's pair count and one small buffer of scalars (the loss sums and the
 gradients' NaN / Inf flag), and the parameters only when densifying, checkpointing or exporting.
@@ -144,8 +148,8 @@ class Trainer:
 
     def train_step_between(self) -> Optional[Dict[str, float]]:
         """One optimisation step at a time between two training frames, supervised by the frame the
-        pair's flow predicts there (train/between.py); None when the drawn target has no trusted
-        pixel (nothing was done)."""
+        pair's flow predicts there (train/between.py); None when the drawn target has no supervised
+        pixel (tool masks cover it: nothing was done)."""
         drawn = self._between.draw(self.rng)
         if drawn is None:
             return None
