@@ -18,7 +18,7 @@ used: an image-space warp predicts nothing for a moving camera.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -46,8 +46,7 @@ def between_target(scene, pair, s: float) -> Tuple[np.ndarray, np.ndarray, float
     weight = np.ones(image.shape[:2], np.float32)
     for f, flow, frac in ((f0, pair.flow, s), (f1, pair.flow_bw, 1.0 - s)):
         if f.mask is not None:
-            weight *= (warp_backward(np.asarray(f.mask, np.float32)[..., None].repeat(3, -1), flow, frac)[..., 0]
-                       > 0.5).astype(np.float32)
+            weight *= (warp_backward(np.asarray(f.mask, np.float32), flow, frac) > 0.5).astype(np.float32)
     t = (1.0 - s) * float(f0.time) + s * float(f1.time)
     return image, weight, t
 
