@@ -12,6 +12,10 @@
  *   sh:     row_len (NT+1)*K*3, split 3 -> the DC term of n = 0 at lr_a, the rest lr_b;
  *   others: split = row_len (one lr).
  * An element whose lr is 0 is frozen: neither the parameter nor its moments change.
+ * With skip_culled, so is every element of a Gaussian whose visible[g] is 0 (the step's projected
+ * radius: culled at this step's time, so its gradient is 0): its parameters and moments keep their
+ * values instead of decaying the moments and moving on momentum (gsplat's SelectiveAdam).  The
+ * bias correction still counts every step.
  *
  * Bias-corrected Adam exactly as torch.optim.Adam (no weight decay, no amsgrad):
  *   m = b1 m + (1 - b1) g;  v = b2 v + (1 - b2) g^2
@@ -31,7 +35,7 @@
 #define GROUP_DISPATCH(k)                                                               \
     if (i < (n##k + ADAM_RUN - 1) / ADAM_RUN) {                                         \
         adam_run(p##k, g##k, m##k, v##k, n##k, i * ADAM_RUN, row##k, split##k, lra##k,  \
-                 lrb##k, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);         \
+                 lrb##k, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2, vis);    \
         return;                                                                         \
     }                                                                                   \
     i -= (n##k + ADAM_RUN - 1) / ADAM_RUN;
@@ -67,24 +71,28 @@ inline void adam_update8(__global float *p, const float8 gj, __global float *m, 
 }
 
 /* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n (the group's last, shorter run element by
- * element) */
+ * element); vis: the visibility array, or 0 (no skipping).  Element j belongs to Gaussian j / row. */
 inline void adam_run(__global float *p, __global const float *g, __global float *m,
                      __global float *v, const int n, const int j0, const int row, const int split,
                      const float lra, const float lrb, const float beta1, const float beta2,
                      const float omb1, const float omb2, const float eps, const float inv_bc1,
-                     const float inv_sqrt_bc2) {
+                     const float inv_sqrt_bc2, __global const int *vis) {
     if (j0 + ADAM_RUN > n) {
-        for (int j = j0; j < n; j++)
-            adam_element(p, g[j], m, v, j, ((j % row) < split) ? lra : lrb, beta1, beta2, omb1, omb2, eps,
-                         inv_bc1, inv_sqrt_bc2);
+        for (int j = j0; j < n; j++) {
+            const float lr = (vis && vis[j / row] == 0) ? 0.0f : (((j % row) < split) ? lra : lrb);
+            adam_element(p, g[j], m, v, j, lr, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
+        }
         return;
     }
     float lr_l[ADAM_RUN];
-    int col = j0 % row;
+    int col = j0 % row, gi = j0 / row;
     for (int l = 0; l < ADAM_RUN; l++) {
-        lr_l[l] = col < split ? lra : lrb;
-        if (++col == row) col = 0;
+        lr_l[l] = (vis && vis[gi] == 0) ? 0.0f : (col < split ? lra : lrb);
+        if (++col == row) { col = 0; gi++; }
     }
+    bool live = false;
+    for (int l = 0; l < ADAM_RUN; l++) live |= lr_l[l] != 0.0f;
+    if (!live) return;   /* all frozen: nothing to load or store */
     const float8 lr = (float8)(lr_l[0], lr_l[1], lr_l[2], lr_l[3], lr_l[4], lr_l[5], lr_l[6], lr_l[7]);
     adam_update8(p, load8(g + j0), m, v, j0, lr, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
 }
@@ -100,7 +108,8 @@ inline void adam_sh_row(__global float *p, __global const float *fac, __global f
                         __global float *v, const int i, const int split, const float lra,
                         const float lrb, const float beta1, const float beta2, const float omb1,
                         const float omb2, const float eps, const float inv_bc1,
-                        const float inv_sqrt_bc2) {
+                        const float inv_sqrt_bc2, __global const int *vis) {
+    if (vis && vis[i] == 0) return;   /* culled: the whole row is frozen */
     float fr[SHF_SIZE], g[SH_NCOEF];
     for (int e = 0; e < SHF_SIZE; ++e) fr[e] = fac[SHF_SIZE * i + e];
     sh_grad_expand(fr, g);
@@ -122,7 +131,7 @@ inline void adam_sh_row(__global float *p, __global const float *fac, __global f
 #define GROUP_DISPATCH_SH_FACTORS(k)                                                    \
     if (i < n##k / SH_NCOEF) {                                                          \
         adam_sh_row(p##k, g##k, m##k, v##k, i, split##k, lra##k, lrb##k, beta1, beta2,  \
-                    omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);                            \
+                    omb1, omb2, eps, inv_bc1, inv_sqrt_bc2, vis);                       \
         return;                                                                         \
     }                                                                                   \
     i -= n##k / SH_NCOEF;
@@ -132,8 +141,11 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
                         GROUP_ARGS(4), GROUP_ARGS(5), GROUP_ARGS(6),
                         const float beta1, const float beta2,
                         const float omb1, const float omb2, const float eps,
-                        const float inv_bc1, const float inv_sqrt_bc2) {
+                        const float inv_bc1, const float inv_sqrt_bc2,
+                        __global const int *visible,   /* [N] projected radius (0: culled) */
+                        const int skip_culled) {
     int i = get_global_id(0);
+    __global const int *vis = skip_culled ? visible : 0;
     GROUP_DISPATCH(0)
     GROUP_DISPATCH(1)
     GROUP_DISPATCH(2)

@@ -1,6 +1,8 @@
 /* project4d forward (docs/ARCHITECTURE.md "project4d").  Scalar variant: one work-item per
  * Gaussian; vector variant (-DP4_VW=W): W Gaussians per work-item, one per lane (project4d_common.h).
- * Reference: endowave_cl/reference/project.py::project4d_ref. */
+ * Reference: endowave_cl/reference/project.py::project4d_ref.
+ * Build option -DALPHA_MIN (layout.py): the tile rect covers only where alpha can reach it;
+ * -DP4_NO_TIGHT_RECT keeps the 3-sigma rect (tests/test_tight_rect.py compares the two). */
 #include "project4d_common.h"
 
 __kernel void project4d(
@@ -48,7 +50,11 @@ __kernel void project4d(
 #else
     radius[ix] = (int)s.radius;
 #endif
-    p4_st(opac, 1, 0, ix, P4_SEL(ok, s.m / (1.0f + P4_EXP(-p4_ld(opacity, 1, 0, ix)))));
+    const p4f op = P4_SEL(ok, s.m / (1.0f + P4_EXP(-p4_ld(opacity, 1, 0, ix))));
+    p4_st(opac, 1, 0, ix, op);
+#ifndef P4_NO_TIGHT_RECT
+    p4_tight_rect(&s, op, tiles_x, tiles_y);   /* only the tiles where alpha can reach ALPHA_MIN */
+#endif
     for (int k = 0; k < 4; ++k) p4_sti(rect, 4, k, ix, P4_SELI(ok, s.rect[k]));
     p4_sti(tiles_touched, 1, 0, ix, P4_SELI(ok, (s.rect[2] - s.rect[0]) * (s.rect[3] - s.rect[1])));
 

@@ -427,6 +427,36 @@ typedef struct {
     p4i valid;            /* scalar: 0 / 1; vector: lane mask */
 } P4State;
 
+/* The tiles [rect[0], rect[2]) x [rect[1], rect[3]) (clamped to the grid) that the pixel box
+ * means2d -+ (ex, ey) reaches; all zero where the lane mask valid is clear. */
+P4_FN void p4_tile_rect(const p4f *means2d, p4f ex, p4f ey, p4i valid, int tiles_x, int tiles_y, p4i *rect) {
+#ifdef P4_VW
+    /* clamp(floor(v), 0, hi) = trunc(clamp(v, 0, hi)) and clamp(ceil(v), 0, hi) = ceil(clamp(v, 0, hi)):
+     * no floor / ceil calls */
+    p4f fr[4];
+    fr[0] = (means2d[0] - ex) / (float)TILE;
+    fr[1] = (means2d[1] - ey) / (float)TILE;
+    fr[2] = (means2d[0] + ex) / (float)TILE;
+    fr[3] = (means2d[1] + ey) / (float)TILE;
+    for (int k = 0; k < 4; ++k) {
+        const float hi = (float)((k & 1) ? tiles_y : tiles_x);
+        p4f v = P4_SEL(valid, fr[k]);
+        v = P4_FMIN(P4_FMAX(v, (p4f)(0.0f)), (p4f)(hi));   /* clamp(v, 0, hi); NaN -> 0 */
+        if (k >= 2) v = p4v_ceil_nonneg(v);
+        rect[k] = P4_SELI(valid, convert_intV(v));
+    }
+#else
+    if (!valid) {
+        for (int k = 0; k < 4; ++k) rect[k] = 0;
+        return;
+    }
+    rect[0] = (int)clamp(floor((means2d[0] - ex) / (float)TILE), 0.0f, (float)tiles_x);
+    rect[1] = (int)clamp(floor((means2d[1] - ey) / (float)TILE), 0.0f, (float)tiles_y);
+    rect[2] = (int)clamp(ceil((means2d[0] + ex) / (float)TILE), 0.0f, (float)tiles_x);
+    rect[3] = (int)clamp(ceil((means2d[1] + ey) / (float)TILE), 0.0f, (float)tiles_y);
+#endif
+}
+
 /* Projects Gaussian(s) ix at time t.  Culled (valid = 0) when Sigma_tt <= SIGMA_TT_MIN,
  * m < MARGINAL_CULL, z < near, cov2d non-finite / not positive definite, or the tile rect empty
  * (NaN fails every test). */
@@ -499,41 +529,66 @@ P4_FN void p4_forward(const P4Cam *cam, __global const float *means, __global co
     p4f lmax = mid + sqrt(P4_FMAX(mid * mid - s->det, (p4f)(0.0f)));
     valid = valid & (s->det > 0.0f) & P4_ISFINITE(lmax) & P4_ISFINITE(s->conic[0]) & P4_ISFINITE(s->conic[1])
             & P4_ISFINITE(s->conic[2]) & P4_ISFINITE(s->means2d[0]) & P4_ISFINITE(s->means2d[1]);
-#ifdef P4_VW
-    /* every lane computes its rect; culled lanes (whose values may be NaN) are zeroed by the selects.
-     * clamp(floor(v), 0, hi) = trunc(clamp(v, 0, hi)) and clamp(ceil(v), 0, hi) = ceil(clamp(v, 0, hi)):
-     * no floor / ceil calls */
-    const p4f r = p4v_ceil_nonneg(3.0f * sqrt(P4_SEL(valid, lmax)));
-    p4f fr[4];
-    fr[0] = (s->means2d[0] - r) / (float)TILE;
-    fr[1] = (s->means2d[1] - r) / (float)TILE;
-    fr[2] = (s->means2d[0] + r) / (float)TILE;
-    fr[3] = (s->means2d[1] + r) / (float)TILE;
-    for (int k = 0; k < 4; ++k) {
-        const float hi = (float)((k & 1) ? tiles_y : tiles_x);
-        p4f v = P4_SEL(valid, fr[k]);
-        v = P4_FMIN(P4_FMAX(v, (p4f)(0.0f)), (p4f)(hi));   /* clamp(v, 0, hi); NaN -> 0 */
-        if (k >= 2) v = p4v_ceil_nonneg(v);
-        s->rect[k] = P4_SELI(valid, convert_intV(v));
-    }
-    s->radius = P4_SEL(valid, P4_FMIN(r, (p4f)(RADIUS_MAX)));
-    valid = valid & (s->rect[2] > s->rect[0]) & (s->rect[3] > s->rect[1]);
-#else
     s->radius = 0.0f;
+#ifdef P4_VW
+    /* every lane computes its radius and rect; culled lanes (whose values may be NaN) are zeroed by
+     * the selects */
+    const p4f r = p4v_ceil_nonneg(3.0f * sqrt(P4_SEL(valid, lmax)));
+    s->radius = P4_SEL(valid, P4_FMIN(r, (p4f)(RADIUS_MAX)));
+    p4_tile_rect(s->means2d, r, r, valid, tiles_x, tiles_y, s->rect);
+#else
     for (int k = 0; k < 4; ++k) s->rect[k] = 0;
     if (valid) {
-        float r = ceil(3.0f * sqrt(lmax));
-        float fx0 = clamp(floor((s->means2d[0] - r) / (float)TILE), 0.0f, (float)tiles_x);
-        float fx1 = clamp(ceil((s->means2d[0] + r) / (float)TILE), 0.0f, (float)tiles_x);
-        float fy0 = clamp(floor((s->means2d[1] - r) / (float)TILE), 0.0f, (float)tiles_y);
-        float fy1 = clamp(ceil((s->means2d[1] + r) / (float)TILE), 0.0f, (float)tiles_y);
-        s->rect[0] = (int)fx0; s->rect[1] = (int)fy0; s->rect[2] = (int)fx1; s->rect[3] = (int)fy1;
+        const float r = ceil(3.0f * sqrt(lmax));
         s->radius = fmin(r, RADIUS_MAX);
-        valid = (s->rect[2] > s->rect[0]) && (s->rect[3] > s->rect[1]);
+        p4_tile_rect(s->means2d, r, r, valid, tiles_x, tiles_y, s->rect);
     }
 #endif
+    valid = valid & (s->rect[2] > s->rect[0]) & (s->rect[3] > s->rect[1]);
     s->valid = valid;
 }
+
+#ifndef P4_FORWARD_NO_RECT
+/* An upper bound of ln(x) for a finite x > 0 (normal), without a call: x = 2^e m, m in [1, 2),
+ * and log2(m) <= m - LOG2_TANGENT_OFFSET (log2 is concave: its tangent at m = 1 / ln 2 lies above
+ * it, at most 0.09 above on [1, 2]). */
+#define LOG2_TANGENT_OFFSET 0.913929f    /* 1 / ln 2 - log2(1 / ln 2) */
+#define LN2_F 0.693147181f
+P4_FN p4f p4_log_upper(p4f x) {
+#ifdef P4_VW
+    const intV bits = as_intV(x);
+    const floatV e = as_floatV((bits >> 23) | 0x4B000000) - (8388608.0f + 127.0f);   /* exponent, exact */
+    const floatV m = as_floatV((bits & 0x007fffff) | 0x3f800000);
+#else
+    const int bits = as_int(x);
+    const float e = as_float((bits >> 23) | 0x4B000000) - (8388608.0f + 127.0f);
+    const float m = as_float((bits & 0x007fffff) | 0x3f800000);
+#endif
+    return LN2_F * (e + m - LOG2_TANGENT_OFFSET) + 1e-3f;
+}
+
+/* The tile rect narrowed to where the Gaussian can reach alpha >= ALPHA_MIN (the rasterizers' skip
+ * test): opac G >= ALPHA_MIN needs d^T cov2d^-1 d <= q = 2 ln(opac / ALPHA_MIN), i.e. |dx| <=
+ * sqrt(q a), |dy| <= sqrt(q c) (a, c the 2D covariance's diagonal).  q is bounded from above
+ * (p4_log_upper plus TIGHT_Q_PAD) and the box widened by TIGHT_SLACK and TIGHT_PAD pixels, so it
+ * holds the rasterizers' cull box (cull_box in rasterize.cl, with its own margins) with room for
+ * rounding: the tiles it drops hold no pixel that any Gaussian-pixel test would keep, and the image
+ * and gradients are those of the 3-sigma rect.  The extents are capped at the 3-sigma radius (the
+ * rect never grows).  Opacities below ALPHA_MIN (with TIGHT_OPAC_SLACK) contribute nowhere: empty
+ * rect.  The radius and the Gaussian's validity are not changed. */
+#define TIGHT_Q_PAD 0.01f
+#define TIGHT_SLACK 1.01f
+#define TIGHT_PAD 0.5f
+#define TIGHT_OPAC_SLACK 0.999f
+P4_FN void p4_tight_rect(P4State *s, p4f opac, int tiles_x, int tiles_y) {
+    const p4f ratio = opac * (1.0f / ALPHA_MIN);
+    const p4i reach = s->valid & (ratio >= TIGHT_OPAC_SLACK);
+    const p4f q = 2.0f * P4_FMAX(p4_log_upper(P4_FMAX(ratio, (p4f)(1.0f))), (p4f)(0.0f)) + TIGHT_Q_PAD;
+    const p4f ex = P4_FMIN(sqrt(q * P4_FMAX(s->a, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
+    const p4f ey = P4_FMIN(sqrt(q * P4_FMAX(s->c, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
+    p4_tile_rect(s->means2d, ex, ey, reach, tiles_x, tiles_y, s->rect);
+}
+#endif
 
 /* Camera-space position of mu_x at time t2 (flow); uses the state's Sigma_xt / Sigma_tt. */
 P4_FN void p4_flow_point(const P4Cam *cam, __global const float *means, P4Idx ix, const P4State *s,

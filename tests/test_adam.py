@@ -83,6 +83,66 @@ def test_adam_frozen_lanes_inside_a_run(rt):
     assert not np.array_equal(dev["means"][:, :3], g.means[:, :3])
 
 
+def _run_visible(rt, g, steps, seed=0):
+    """Device Adam with a random visibility per step (visible = radius, 0 culled) against the
+    reference with the culled rows' learning rates set to 0."""
+    rng = np.random.default_rng(seed)
+    params = upload(rt, g)
+    opt = DeviceAdam(rt, params, LRS)
+    ref = {n: a.copy() for n, a in g.as_dict().items()}
+    m = {n: np.zeros_like(a) for n, a in ref.items()}
+    v = {n: np.zeros_like(a) for n, a in ref.items()}
+    never = np.zeros(len(g), bool)
+    never[::5] = True                        # culled at every step
+    for s in range(steps):
+        radius = np.where(never | (rng.random(len(g)) < 0.5), 0, rng.integers(1, 40, len(g))).astype(np.int32)
+        grads = _grads(g, rng)
+        for n in PARAM_NAMES:                # a culled Gaussian's gradient is 0
+            grads[n][radius == 0] = 0.0
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, visible=_to_dev_i(rt, radius))
+        for n in PARAM_NAMES:
+            lr = element_lrs(n, ref[n].shape, opt.lrs)
+            lr[radius == 0] = 0.0
+            ref[n], m[n], v[n] = adam_step_ref(ref[n], grads[n], m[n], v[n], lr, s + 1)
+    st = opt.state_dict()
+    return {n: params[n].get() for n in PARAM_NAMES}, st, ref, m, v, never
+
+
+def _to_dev_i(rt, a):
+    import pyopencl.array as cla
+    return cla.to_device(rt.queue, np.ascontiguousarray(a, np.int32))
+
+
+def test_adam_skip_culled_matches_reference(rt):
+    """visible=radius: the rows of culled Gaussians keep parameters and moments (every group,
+    runs of 8 that straddle Gaussians included); the others step as the reference does."""
+    g = Gaussians.random(small(37, 7), seed=3)
+    dev, st, ref, m, v, never = _run_visible(rt, g, small(4, 2))
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
+        np.testing.assert_allclose(st["exp_avg"][n], m[n], rtol=1e-5, atol=1e-7, err_msg=n)
+        np.testing.assert_allclose(st["exp_avg_sq"][n], v[n], rtol=1e-5, atol=1e-9, err_msg=n)
+        np.testing.assert_array_equal(dev[n][never], getattr(g, n)[never].astype(np.float32), err_msg=n)
+        assert not st["exp_avg"][n][never].any() and st["exp_avg"][n][~never].any(), n
+
+
+def test_adam_visible_must_match_rows(rt):
+    g = Gaussians.random(5, seed=1)
+    opt = DeviceAdam(rt, upload(rt, g), LRS)
+    grads = {n: _to_dev(rt, a) for n, a in _grads(g, np.random.default_rng(0)).items()}
+    with pytest.raises(EndowaveError, match="visible must be int32"):
+        opt.step(grads, visible=_to_dev_i(rt, np.ones(4, np.int32)))
+    assert opt.step_count == 0
+
+
+@pytest.mark.oclgrind
+def test_adam_skip_culled_tiny_oclgrind(rt):
+    g = Gaussians.random(3, seed=2, degree=1, nt=1)
+    dev, st, ref, m, v, never = _run_visible(rt, g, 2)
+    for n in PARAM_NAMES:
+        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
+
+
 @pytest.mark.oclgrind
 def test_adam_tiny_oclgrind(rt):
     g = Gaussians.random(2, seed=2, degree=1, nt=1)

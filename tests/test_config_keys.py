@@ -354,6 +354,29 @@ def _between_prob(scene, rt, tmp_path):
         assert len(times) == 4 and sum(t not in train_times for t in times) == want
 
 
+def _adam_skip_culled(scene, rt, tmp_path):
+    """adam_skip_culled: a Gaussian culled at the step's time (here: behind the camera) keeps its
+    parameters and moments; without it, Adam moves it on the momentum of earlier steps."""
+    from endowave_cl.gaussians import PARAM_NAMES
+    k0, k1 = scene.train_indices[:2]
+    out = {}
+    for skip in (False, True):
+        tr = _trainer(scene, rt, tmp_path / str(skip), adam_skip_culled=skip)
+        tr.train_step(k0)                                    # every Gaussian gets moments
+        means = tr.params["means"].get()
+        means[0, 2] = -100.0                                 # Gaussian 0: culled from now on
+        tr.params["means"].set(means)
+        before = tr.params["means"].get()[0].copy()
+        m_before = tr.adam.state_dict()["exp_avg"]["means"][0].copy()
+        tr.train_step(k1)
+        out[skip] = (before, tr.params["means"].get()[0], m_before, tr.adam.state_dict()["exp_avg"]["means"][0])
+    b, a, mb, ma = out[True]
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(ma, mb)
+    b, a, mb, ma = out[False]
+    assert not np.array_equal(ma, mb)    # the moment decays (and the mean moves on it where it is not 0)
+
+
 def _loss_effect(key, value, what):
     def check(scene, rt, tmp_path):
         what(_losses(rt, TrainConfig()), _losses(rt, TrainConfig(**{key: value})))
@@ -414,6 +437,7 @@ CHECKS = {
     "lr_scales": _lr("lr_scales", "scales", 0.01),
     "lr_rotation": _lr("lr_rotation", "quat_r", 0.003),
     "lr_phase": _lr("lr_phase", "phase", 0.01),
+    "adam_skip_culled": _adam_skip_culled,
     "densify_from": _loop_effect("densify_from", 3, _densify_from),
     "densify_every": _loop_effect("densify_every", 3, _densify_every),
     "densify_until": _loop_effect("densify_until", 6, _densify_until),

@@ -11,8 +11,9 @@ from conftest import small
 from endowave_cl.camera import Camera
 from endowave_cl.gaussians import MARGINAL_CULL, Gaussians, upload
 from endowave_cl.ops.project import ENV_VARIANT, ENV_VEC_WIDTH, project4d, project4d_bwd, project_lanes
-from endowave_cl.reference.project import (condition_at, covariance4d, project4d_ref, rotation4d,
-                                           sh_basis)
+from endowave_cl.layout import ALPHA_MIN
+from endowave_cl.reference.project import (TIGHT_OPAC_SLACK, condition_at, covariance4d, project4d_ref,
+                                           rotation4d, sh_basis, tight_extent)
 
 FLOAT_OUTS = ("means2d", "conic", "depth", "opac", "features")
 INT_OUTS = ("radius", "rect", "tiles_touched")
@@ -85,10 +86,15 @@ def at_rounding_boundary(r, rel=1e-5, tile_abs=1e-5):
         v = 3.0 * np.sqrt(mid + np.sqrt(np.maximum(mid * mid - (a * c - b * b), 0.0)))
     near = np.abs(v - np.round(v)) <= rel * np.abs(v)
     rad = r["radius"].astype(np.float64)
-    for j in range(2):
+    # the tight rect's extents (reference/project.py tight_extent) and its opacity test
+    ex, ey, _ = tight_extent(torch.from_numpy(r["opac"]), torch.from_numpy(a.astype(np.float32)),
+                             torch.from_numpy(c.astype(np.float32)), torch.from_numpy(rad.astype(np.float32)))
+    for j, ext in enumerate((ex.numpy().astype(np.float64), ey.numpy().astype(np.float64))):
         for sgn in (-1.0, 1.0):
-            e = (r["means2d"][:, j].astype(np.float64) + sgn * rad) / 16.0
-            near |= np.abs(e - np.round(e)) <= tile_abs
+            for half in (rad, ext):
+                e = (r["means2d"][:, j].astype(np.float64) + sgn * half) / 16.0
+                near |= np.abs(e - np.round(e)) <= tile_abs
+    near |= np.abs(r["opac"].astype(np.float64) / ALPHA_MIN - TIGHT_OPAC_SLACK) <= rel
     return near & (r["radius"] > 0)
 
 

@@ -82,9 +82,10 @@ def test_factors_tiny_oclgrind(rt, variant):  # noqa: F811
     check_factors(full, fac, radius)
 
 
-def train_both(rt, g, steps, lrs, size=(48, 40)):
+def train_both(rt, g, steps, lrs, size=(48, 40), skip_culled=False):
     """`steps` Adam steps on rendered gradients, once with v_sh in full and once as factors, from the
-    same parameters: both runs' parameters and moments."""
+    same parameters: both runs' parameters and moments.  skip_culled: Adam leaves the step's culled
+    Gaussians alone (visible = the projected radius)."""
     import pyopencl.array as cla
     w, h = size
     cam = Camera(0.9 * w, 0.9 * w, w / 2, h / 2, w, h)
@@ -99,7 +100,7 @@ def train_both(rt, g, steps, lrs, size=(48, 40)):
             grads = render_backward(rt, params, out, cla.to_device(rt.queue, v_feats[s]), deterministic=True,
                                     sh_factors=factored)
             assert isinstance(grads["v_sh"], ShGradFactors) == factored
-            opt.step({name[2:]: a for name, a in grads.items()})
+            opt.step({name[2:]: a for name, a in grads.items()}, visible=out.proj.radius if skip_culled else None)
         st = opt.state_dict()
         runs.append({n: (params[n].get(), st["exp_avg"][n], st["exp_avg_sq"][n]) for n in PARAM_NAMES})
     return runs
@@ -118,6 +119,22 @@ def test_adam_on_factors_equals_adam_on_full_gradient(rt, degree, nt):
         for what, a, b in zip(("param", "exp_avg", "exp_avg_sq"), old[n], new[n]):
             assert same_bits(a, b), (n, what)
     assert not same_bits(old["sh"][1], np.zeros_like(old["sh"][1]))   # the SH did get gradients
+
+
+def test_adam_on_factors_skip_culled(rt):
+    """Adam with the culled rows frozen: the factored and the full SH gradient give the same bits,
+    and a Gaussian culled at every step (behind the camera) keeps its parameters and zero moments."""
+    g = scene(small(120, 20))
+    old, new = train_both(rt, g, 3, LRS, skip_culled=True)
+    for n in PARAM_NAMES:
+        for what, a, b in zip(("param", "exp_avg", "exp_avg_sq"), old[n], new[n]):
+            assert same_bits(a, b), (n, what)
+    behind = g.means[:, 2] < 0
+    for n in PARAM_NAMES:
+        p, m, v = new[n]
+        assert same_bits(p[behind], getattr(g, n)[behind].astype(np.float32)), n
+        assert not m[behind].any() and not v[behind].any(), n
+        assert m[~behind].any(), n
 
 
 def test_adam_on_factors_frozen_sh(rt):

@@ -9,6 +9,10 @@ the median of as many Trainer.train_step calls (the step as training runs it: no
 the parts, its own read-backs and the NaN guard).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
+                                     [--checkpoint RUN/checkpoint_0003000.npz]
+
+--checkpoint takes the Gaussians of a trained model instead (a real run's count, and Gaussians that
+live only part of the sequence: most of them are culled at any one time), with fresh Adam moments.
 
 --downscale 2 trains on the frames at half size (320x256 for EndoNeRF), with the same number of
 Gaussians.
@@ -41,6 +45,7 @@ def main(argv=None):
     ap.add_argument("--full-sh", action="store_true",
                     help="per-part steps: the adjoint writes v_sh in full for Adam and the NaN guard "
                          "(the training step passes it as factors)")
+    ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
 
@@ -63,6 +68,11 @@ def main(argv=None):
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0)
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
+        if args.checkpoint:
+            import numpy as np
+            from endowave_cl.checkpoint import load_checkpoint
+            g = load_checkpoint(args.checkpoint)["gaussians"]
+            tr.set_gaussians(g, np.full(len(g), -1))   # fresh (zero) Adam moments
         n = len(tr.params["means"])
         print(f"device: {rt.describe()}")
         print(f"scene: {scene_path} ({scene.width}x{scene.height}), {n} Gaussians, losses: rgb"

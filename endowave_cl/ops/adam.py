@@ -9,6 +9,9 @@ Learning rates (``lrs``), one float per key:
     sh_rest   every other TEASH coefficient (default: lrs["sh"] / SH_REST_DIVISOR), i.e.
               3DGS's "higher orders / 20" extended to the temporal terms n >= 1
 A group (or part of one) whose lr is 0 is frozen: its parameters and moments are untouched.
+``step(..., visible=radius)`` freezes the same way every row of a Gaussian whose projected radius
+is 0 this step (culled at the step's time: its gradient is 0), as gsplat's SelectiveAdam: a 4D
+Gaussian outside its lifetime keeps its parameters and moments instead of drifting on momentum.
 
 Moments are kept on the device; ``state_dict`` / ``load_state_dict`` move them as numpy, and
 ``remap`` rebuilds them after densification (row i <- old row source_index[i], zeros where < 0).
@@ -122,12 +125,18 @@ class DeviceAdam:
         return self.rt.buf(arr)   # zero-size pyopencl arrays have no buffer: the runtime's placeholder
 
     # -- the update ---------------------------------------------------------------------------
-    def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None) -> None:
+    def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None,
+             visible=None) -> None:
         """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept.
         grads["sh"] may be an ops.project.ShGradFactors (render_backward(..., sh_factors=True)):
-        the kernel forms the SH gradient from its factors, the same values as the full array."""
+        the kernel forms the SH gradient from its factors, the same values as the full array.
+        visible: None, or an int32 device array [N] (the step's projected radius): rows where it
+        is 0 are left untouched, parameters and moments."""
         if lrs:
             self.lrs.update({k: float(v) for k, v in lrs.items()})
+        n_rows = int(self.params["means"].shape[0])
+        if visible is not None and (tuple(visible.shape) != (n_rows,) or visible.dtype != np.int32):
+            raise EndowaveError(f"Adam: visible must be int32 [{n_rows}], got {tuple(visible.shape)} {visible.dtype}")
         step = self.step_count + 1  # counted once the arguments are valid
         b1, b2 = self.betas
         inv_bc1 = 1.0 / (1.0 - b1 ** step)
@@ -167,7 +176,8 @@ class DeviceAdam:
         if total == 0:
             return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
-                 np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
+                 np.float32(inv_bc1), np.float32(inv_sqrt_bc2),
+                 self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None)]
         self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args)
 
     def reset_moments(self, name: str) -> None:

@@ -14,7 +14,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
-from ..layout import CAM_SIZE, CHANNELS, tile_grid
+from ..layout import ALPHA_MIN, CAM_SIZE, CHANNELS, tile_grid
+from .util import f32_literal
 
 WORK_GROUP = 64        # work-items per group (scalar variant); one work-item per Gaussian
 VEC_WORK_GROUP = 8     # work-items per group of the vector variant (each takes its lanes' Gaussians)
@@ -134,7 +135,8 @@ def _dims(params):
 
 def _options(rt, degree: int, nt: int, channels: int):
     opts = [f"-DSH_DEGREE={degree}", f"-DNT={nt}", f"-DCHANNELS={channels}",
-            f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f"]
+            f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f",
+            f"-DALPHA_MIN={f32_literal(ALPHA_MIN)}"]   # the tight tile rect (project4d.cl)
     # correctly rounded / and sqrt (where the device offers them; OpenCL 1.2 allows the option only
     # then) bring the float radius / rect closer to the torch reference at ceil / floor boundaries
     fp = getattr(rt.device, "single_fp_config", 0)

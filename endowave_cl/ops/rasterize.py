@@ -19,16 +19,12 @@ from ..errors import EndowaveError
 from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid
 from ..probe import ENV_PLANT
 from ..runtime import ENV_CACHE_DIR
-
-
-def _f32_literal(x: float) -> str:
-    """An OpenCL float literal that rounds to the same float32 as numpy does."""
-    return "%.9ef" % float(np.float32(x))
+from .util import f32_literal
 
 
 def _options(C: int):
-    return [f"-DC={int(C)}", f"-DALPHA_MAX={_f32_literal(ALPHA_MAX)}",
-            f"-DALPHA_MIN={_f32_literal(ALPHA_MIN)}", f"-DT_STOP={_f32_literal(T_STOP)}"]
+    return [f"-DC={int(C)}", f"-DALPHA_MAX={f32_literal(ALPHA_MAX)}",
+            f"-DALPHA_MIN={f32_literal(ALPHA_MIN)}", f"-DT_STOP={f32_literal(T_STOP)}"]
 
 
 # Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl, rasterize_bwd.cl), the GPU

@@ -9,6 +9,11 @@ WORK_GROUP = 128
 READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
 
+def f32_literal(x: float) -> str:
+    """An OpenCL float literal that rounds to the same float32 as numpy does (for -D build options)."""
+    return "%.9ef" % float(np.float32(x))
+
+
 def nonfinite_flag(rt, arrays, flag=None):
     """Enqueue the NaN / Inf check of the given float32 device arrays, without reading it:
     returns flag (cla int32 [1], zeroed here when not given), 1 when any element is not finite.

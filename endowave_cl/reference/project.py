@@ -12,6 +12,9 @@ Conventions fixed here and mirrored by cl/project4d_common.h:
   Sigma_tt is not > SIGMA_TT_MIN, the marginal m < MARGINAL_CULL (or not finite), the camera-space
   z of the conditional mean is < near, cov2d is non-finite or not positive definite, or the tile
   rectangle is empty.
+- Tile rect: the tiles that the box means2d -+ 3 sqrt(lambda_max) reaches, narrowed to the box
+  where opac G can reach ALPHA_MIN (``tight_extent``: the rasterizers skip every pixel outside it).
+  A Gaussian whose opacity is below ALPHA_MIN keeps its radius but touches no tile.
 - Flow channel: projection of mu_x|t_flow minus projection of mu_x|t; it is 0 (no gradient) when
   t_flow is None, when mu_x|t_flow is behind the near plane (its projection is undefined), or when
   the flow exceeds the image size (TILE * tiles per side) in x or y (a runaway velocity).
@@ -25,11 +28,18 @@ from typing import Dict, Optional
 import torch
 
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD, sh_basis_terms
-from ..layout import TILE, tile_grid
+from ..layout import ALPHA_MIN, TILE, tile_grid
 
 LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
 SIGMA_TT_MIN = 1e-12   # temporal variance below this (std 1e-6 of the sequence) is degenerate: culled
 RADIUS_MAX = 1 << 30   # the stored int radius saturates here (the rect uses the float radius)
+# margins of the tight rect (cl/project4d_common.h p4_tight_rect): upper bound of ln, padding of q,
+# relative and absolute (pixel) widening of the box, slack on the opacity test
+LOG2_TANGENT_OFFSET = 0.913929
+TIGHT_Q_PAD = 0.01
+TIGHT_SLACK = 1.01
+TIGHT_PAD = 0.5
+TIGHT_OPAC_SLACK = 0.999
 
 
 def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -163,21 +173,55 @@ def _project_all(params, camera, t, t_flow, channels):
     else:
         features = torch.cat([features, features.new_zeros(len(z), channels - 6)], -1)
     return dict(means2d=means2d, conic=conic, depth=z, opac=opac, features=features,
-                lmax=lmax, det=det, m=m, stt=sigma[:, 3, 3])
+                lmax=lmax, det=det, m=m, stt=sigma[:, 3, 3], cov_a=a, cov_c=c)
+
+
+def log_upper(x: torch.Tensor) -> torch.Tensor:
+    """The kernel's upper bound of ln(x) for finite x > 0 (float32): x = 2^e m, m in [1, 2), and
+    log2(m) <= m - LOG2_TANGENT_OFFSET (the tangent of the concave log2 at m = 1 / ln 2)."""
+    bits = x.to(torch.float32).view(torch.int32)
+    e = (bits >> 23).to(torch.float32) - 127.0
+    m = ((bits & 0x007FFFFF) | 0x3F800000).view(torch.float32)
+    return math.log(2.0) * (e + m - LOG2_TANGENT_OFFSET) + 1e-3
+
+
+def tight_extent(opac, cov_a, cov_c, radius):
+    """Half-widths (ex, ey) [N] in pixels of the box where opac exp(-d^T cov2d^-1 d / 2) can reach
+    ALPHA_MIN, padded (TIGHT_*) and capped at the 3-sigma radius, and the mask of Gaussians whose
+    opacity can reach ALPHA_MIN at all (float32, as the kernel)."""
+    ratio = opac.to(torch.float32) * (1.0 / torch.tensor(ALPHA_MIN, dtype=torch.float32))   # as 1.0f / ALPHA_MIN
+    reach = ratio >= TIGHT_OPAC_SLACK
+    q = 2.0 * torch.clamp(log_upper(torch.clamp(ratio, min=1.0)), min=0.0) + TIGHT_Q_PAD
+    ex = torch.minimum(torch.sqrt(q * torch.clamp(cov_a.to(torch.float32), min=0.0)) * TIGHT_SLACK + TIGHT_PAD, radius)
+    ey = torch.minimum(torch.sqrt(q * torch.clamp(cov_c.to(torch.float32), min=0.0)) * TIGHT_SLACK + TIGHT_PAD, radius)
+    return ex, ey, reach
+
+
+def _tile_rect(m2, ex, ey, tiles_x, tiles_y):
+    x0 = torch.clamp(torch.floor((m2[:, 0] - ex) / TILE), 0, tiles_x)
+    x1 = torch.clamp(torch.ceil((m2[:, 0] + ex) / TILE), 0, tiles_x)
+    y0 = torch.clamp(torch.floor((m2[:, 1] - ey) / TILE), 0, tiles_y)
+    y1 = torch.clamp(torch.ceil((m2[:, 1] + ey) / TILE), 0, tiles_y)
+    return torch.stack([x0, y0, x1, y1], -1).to(torch.int32)
 
 
 def _radius_rect(means2d, lmax, width, height):
-    """Integer radius [N] and tile rect [N, 4] from float32-rounded values (as the kernel)."""
+    """Integer radius [N], the float radius [N] and the 3-sigma tile rect [N, 4] from
+    float32-rounded values (as the kernel)."""
     tiles_x, tiles_y = tile_grid(width, height)
     m2 = means2d.detach().to(torch.float32)
     r = torch.ceil(3.0 * torch.sqrt(lmax.detach().to(torch.float32)))
-    x0 = torch.clamp(torch.floor((m2[:, 0] - r) / TILE), 0, tiles_x)
-    x1 = torch.clamp(torch.ceil((m2[:, 0] + r) / TILE), 0, tiles_x)
-    y0 = torch.clamp(torch.floor((m2[:, 1] - r) / TILE), 0, tiles_y)
-    y1 = torch.clamp(torch.ceil((m2[:, 1] + r) / TILE), 0, tiles_y)
-    rect = torch.stack([x0, y0, x1, y1], -1).to(torch.int32)
+    rect = _tile_rect(m2, r, r, tiles_x, tiles_y)
     radius = torch.clamp(r, max=RADIUS_MAX).to(torch.int32)
-    return radius, rect
+    return radius, r, rect
+
+
+def tight_rect(means2d, opac, cov_a, cov_c, radius_f, width, height):
+    """The tile rect [N, 4] narrowed to tight_extent (empty where the opacity cannot reach ALPHA_MIN)."""
+    tiles_x, tiles_y = tile_grid(width, height)
+    ex, ey, reach = tight_extent(opac.detach(), cov_a.detach(), cov_c.detach(), radius_f)
+    rect = _tile_rect(means2d.detach().to(torch.float32), ex, ey, tiles_x, tiles_y)
+    return torch.where(reach[:, None], rect, torch.zeros_like(rect))
 
 
 def project4d_ref(params: Dict[str, torch.Tensor], camera, t: float, t_flow: Optional[float] = None,
@@ -197,10 +241,13 @@ def project4d_ref(params: Dict[str, torch.Tensor], camera, t: float, t_flow: Opt
                   & torch.isfinite(allp["lmax"]) & torch.isfinite(allp["features"]).all(-1))
         valid = ((allp["stt"] > SIGMA_TT_MIN) & (allp["m"] >= MARGINAL_CULL)
                  & (allp["depth"] >= camera.near) & (allp["det"] > 0) & finite)
-        radius, rect = _radius_rect(torch.where(valid[:, None], allp["means2d"], 0.0),
-                                    torch.where(valid, allp["lmax"], 0.0), camera.width, camera.height)
+        m2 = torch.where(valid[:, None], allp["means2d"], 0.0)
+        radius, radius_f, rect = _radius_rect(m2, torch.where(valid, allp["lmax"], 0.0),
+                                              camera.width, camera.height)
+        valid &= (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+        rect = tight_rect(m2, torch.where(valid, allp["opac"], 0.0), allp["cov_a"], allp["cov_c"], radius_f,
+                          camera.width, camera.height)
         area = (rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])
-        valid &= area > 0
     idx = torch.nonzero(valid).flatten()
     # 2) differentiable outputs on the survivors only, scattered into zeros: culled rows stay 0 and
     #    receive exactly zero gradient, and no NaN from a culled row can leak into a gradient.

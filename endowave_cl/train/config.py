@@ -71,6 +71,10 @@ class TrainConfig:
     lr_rotation: float = 1e-3           # both quaternions q_l, q_r
     lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
                                         # since the phase is part of the appearance model
+    adam_skip_culled: bool = False      # Adam leaves the Gaussians culled at the step's time alone
+                                        # (parameters and moments), as gsplat's SelectiveAdam: a 4D
+                                        # Gaussian outside its lifetime does not drift on momentum,
+                                        # and Adam reads only the live rows (ops/adam.py)
     # -- adaptive density control (3DGS) ------------------------------------------------------------
     densify_from: int = 500
     densify_every: int = 100

@@ -168,7 +168,8 @@ class Trainer:
         host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
         total, parts = pending.finish(host)
         self._check_finite(total, bool(host["nonfinite"][0]), what)
-        self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step))  # Adam (v_means -> means)
+        self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step),  # Adam (v_means -> means)
+                       visible=out.proj.radius if self.cfg.adam_skip_culled else None)
         self.step += 1
         return parts
 
