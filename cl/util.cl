@@ -28,8 +28,23 @@ __kernel void atomic_sum_f32(__global const float *x, const int n, volatile __gl
     if (l == 0) atomic_add_global_f(out, scratch[0]);
 }
 
-/* flag[0] |= 1 if any of x[0..n) is NaN or +-Inf (the training step's divergence guard). */
+/* flag[0] |= 1 if any of x[0..n) is NaN or +-Inf (the training step's divergence guard).  Work-item
+ * i checks elements [NF_RUN i, NF_RUN (i + 1)) (the last run may be shorter), 8 at a time: a float
+ * is NaN or Inf exactly when its exponent bits are all set (a bit test: isfinite is an out-of-line
+ * call on PoCL).  One atomic per work-item that found one. */
+#define NF_RUN 64   /* ops/util.py NONFINITE_RUN */
+#define EXP_MASK 0x7f800000
 __kernel void any_nonfinite_f32(__global const float *x, const int n, volatile __global int *flag) {
-    int i = get_global_id(0);
-    if (i < n && !isfinite(x[i])) atomic_or(flag, 1);
+    const int j0 = get_global_id(0) * NF_RUN;
+    if (j0 >= n) return;
+    int bad = 0;
+    if (j0 + NF_RUN <= n) {
+        int8 hit = (int8)(0);
+        for (int k = 0; k < NF_RUN; k += 8)
+            hit |= (as_int8(load8(x + j0 + k)) & EXP_MASK) == (int8)(EXP_MASK);
+        bad = hit.s0 | hit.s1 | hit.s2 | hit.s3 | hit.s4 | hit.s5 | hit.s6 | hit.s7;
+    } else {
+        for (int j = j0; j < n; j++) bad |= (as_int(x[j]) & EXP_MASK) == EXP_MASK;
+    }
+    if (bad) atomic_or(flag, 1);
 }

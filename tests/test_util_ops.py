@@ -18,6 +18,22 @@ def test_any_nonfinite(rt, bad):
     assert any_nonfinite(rt, arrs) == (bad is not None)
 
 
+@pytest.mark.parametrize("pos", [0, 7, 63, 64, 200, 255, 256, 300])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_any_nonfinite_every_position(rt, pos, bad):
+    """One bad element anywhere: inside a work-item's full run of 64 or its shorter last run;
+    the largest finite floats and denormals are not flagged."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import any_nonfinite
+    x = np.random.default_rng(pos).standard_normal(301).astype(np.float32)
+    x[::3] = np.finfo(np.float32).max
+    x[1::3] = -np.finfo(np.float32).tiny / 4
+    assert not any_nonfinite(rt, [cla.to_device(rt.queue, x)])
+    x[pos] = bad
+    assert any_nonfinite(rt, [cla.to_device(rt.queue, x)])
+
+
 @pytest.mark.oclgrind
 def test_read_back_several_arrays_in_one_read(rt):
     """read_back returns every array as it is on the device: dtypes, shapes, odd byte sizes, an

@@ -9,7 +9,7 @@ the median of as many Trainer.train_step calls (the step as training runs it: no
 the parts, its own read-backs and the NaN guard).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
-                                     [--checkpoint RUN/checkpoint_0003000.npz]
+                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled]
 
 --checkpoint takes the Gaussians of a trained model instead (a real run's count, and Gaussians that
 live only part of the sequence: most of them are culled at any one time), with fresh Adam moments.
@@ -45,6 +45,8 @@ def main(argv=None):
     ap.add_argument("--full-sh", action="store_true",
                     help="per-part steps: the adjoint writes v_sh in full for Adam and the NaN guard "
                          "(the training step passes it as factors)")
+    ap.add_argument("--adam-skip-culled", action="store_true",
+                    help="Adam leaves the step's culled Gaussians alone (config key adam_skip_culled)")
     ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
@@ -65,7 +67,8 @@ def main(argv=None):
     scene = load_scene(scene_path, downscale=args.downscale)
     rt = get_runtime(args.device)
     cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
-                      use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0)
+                      use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0,
+                      adam_skip_culled=args.adam_skip_culled)
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
         if args.checkpoint:
@@ -104,7 +107,8 @@ def main(argv=None):
             t3 = time.perf_counter()
             nonfinite_flag(rt, grads.values()).get()   # the NaN guard's check (train_step reads it with the sums)
             t3g = time.perf_counter()
-            tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0))
+            tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0),
+                         visible=out.proj.radius if cfg.adam_skip_culled else None)
             rt.queue.finish()
             t4 = time.perf_counter()
             if i >= args.warmup:

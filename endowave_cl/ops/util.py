@@ -6,6 +6,7 @@ from typing import Dict, Mapping
 import numpy as np
 
 WORK_GROUP = 128
+NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (NF_RUN in cl/util.cl)
 READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
 
@@ -30,7 +31,7 @@ def nonfinite_flag(rt, arrays, flag=None):
         a = getattr(a, "factors", a)   # ShGradFactors
         if a.size == 0:
             continue
-        rt.launch_1d(k, a.size, WORK_GROUP, a.data, np.int32(a.size), flag.data)
+        rt.launch_1d(k, -(-a.size // NONFINITE_RUN), WORK_GROUP, a.data, np.int32(a.size), flag.data)
     return flag
 
 
