@@ -27,8 +27,7 @@ MAX_GAUSSIANS_PER_PIXEL = 2.0
 @dataclass
 class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
-    iterations: int = 3000          # under 10 minutes at 320x256 on 2 CPU cores; the test PSNR
-                                    # levels off by then (docs/QUALITY.md);
+    iterations: int = 6000          # about 10 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
                                     # 4DGS trains 30000 on a GPU.  --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
                                     # training on this device (train/budget.py); 0: `iterations`
@@ -49,7 +48,7 @@ class TrainConfig:
                                     # (train/motion.py linear_lifetime; docs/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
-    between_prob: float = 0.3       # fraction of steps spent at a random time between two training
+    between_prob: float = 0.5       # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
                                     # (train/between.py); 0: training frames only (docs/QUALITY.md)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
@@ -71,14 +70,16 @@ class TrainConfig:
     lr_rotation: float = 1e-3           # both quaternions q_l, q_r
     lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
                                         # since the phase is part of the appearance model
-    adam_skip_culled: bool = False      # Adam leaves the Gaussians culled at the step's time alone
+    adam_skip_culled: bool = True       # Adam leaves the Gaussians culled at the step's time alone
                                         # (parameters and moments), as gsplat's SelectiveAdam: a 4D
                                         # Gaussian outside its lifetime does not drift on momentum,
                                         # and Adam reads only the live rows (ops/adam.py)
     # -- adaptive density control (3DGS) ------------------------------------------------------------
     densify_from: int = 500
     densify_every: int = 100
-    densify_until: int = 1500           # half of training, as 3DGS (15000 of 30000)
+    densify_until: int = 3000           # half of training, as 3DGS (15000 of 30000); like every
+                                        # schedule key a step number: --iterations does not scale
+                                        # them (--minutes does)
     densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
@@ -86,7 +87,7 @@ class TrainConfig:
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
-    opacity_reset_every: int = 3000     # resets happen only while densifying (3DGS): none by default
+    opacity_reset_every: int = 6000     # resets happen only while densifying (3DGS): none by default
     opacity_reset_value: float = 0.01
     # -- losses -----------------------------------------------------------------------------------
     lambda_rgb: float = 1.0
