@@ -107,8 +107,9 @@ def _densify_until(b, n):
 
 
 def _opacity_reset_every(b, n):
-    # resets only while densifying; large screen / world sizes are pruned once past the first reset
-    assert b["reset"] == [] and n["reset"] == [2, 4]
+    # resets only before densify_until (4: as 3DGS, not at it); large screen / world sizes are
+    # pruned once past the first reset
+    assert b["reset"] == [] and n["reset"] == [2]
     assert b["prune_big"] == [False, False] and n["prune_big"] == [False, True]
 
 

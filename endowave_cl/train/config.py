@@ -87,7 +87,7 @@ class TrainConfig:
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
-    opacity_reset_every: int = 6000     # resets happen only while densifying (3DGS): none by default
+    opacity_reset_every: int = 3000     # resets happen only before densify_until (3DGS): none by default
     opacity_reset_value: float = 0.01
     # -- losses -----------------------------------------------------------------------------------
     lambda_rgb: float = 1.0

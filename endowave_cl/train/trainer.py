@@ -304,7 +304,7 @@ class Trainer:
             s = self.step
             if c.densify_from <= s <= c.densify_until and s % c.densify_every == 0:
                 self.densify()
-            if s > 0 and s % c.opacity_reset_every == 0 and s <= c.densify_until:
+            if s > 0 and s % c.opacity_reset_every == 0 and s < c.densify_until:   # as 3DGS: not at its end
                 self.reset_opacity()
                 self._run.guard.reset_reference(s)   # the PSNR dips on purpose
             if budget is not None and self._replan(budget, step_times, bar):
