@@ -26,7 +26,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # quality_run
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
-            "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"}}
+            "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"},
+            "plain_adam": {"adam_skip_culled": "false"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"}}
 
 
 def depth_error(rt, params, scene) -> float:
