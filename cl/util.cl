@@ -32,7 +32,7 @@ __kernel void atomic_sum_f32(__global const float *x, const int n, volatile __gl
  * i checks elements [NF_RUN i, NF_RUN (i + 1)) (the last run may be shorter), 8 at a time: a float
  * is NaN or Inf exactly when its exponent bits are all set (a bit test: isfinite is an out-of-line
  * call on PoCL).  One atomic per work-item that found one. */
-#define NF_RUN 64   /* ops/util.py NONFINITE_RUN */
+#ifdef NF_RUN   /* built with -DNF_RUN (ops/util.py NONFINITE_RUN) */
 #define EXP_MASK 0x7f800000
 __kernel void any_nonfinite_f32(__global const float *x, const int n, volatile __global int *flag) {
     const int j0 = get_global_id(0) * NF_RUN;
@@ -48,3 +48,4 @@ __kernel void any_nonfinite_f32(__global const float *x, const int n, volatile _
     }
     if (bad) atomic_or(flag, 1);
 }
+#endif  /* NF_RUN */

@@ -6,7 +6,7 @@ from typing import Dict, Mapping
 import numpy as np
 
 WORK_GROUP = 128
-NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (NF_RUN in cl/util.cl)
+NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (-DNF_RUN of cl/util.cl)
 READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
 
@@ -26,7 +26,7 @@ def nonfinite_flag(rt, arrays, flag=None):
     import pyopencl.array as cla
     if flag is None:
         flag = cla.zeros(rt.queue, (1,), np.int32)
-    k = rt.kernel("util.cl", "any_nonfinite_f32")
+    k = rt.kernel("util.cl", "any_nonfinite_f32", [f"-DNF_RUN={NONFINITE_RUN}"])
     for a in arrays:
         a = getattr(a, "factors", a)   # ShGradFactors
         if a.size == 0:
