@@ -9,7 +9,7 @@ import pytest
 from conftest import small
 from endowave_cl.errors import EndowaveError
 from endowave_cl.gaussians import PARAM_NAMES, Gaussians, upload
-from endowave_cl.ops.adam import (ADAM_EPS, DeviceAdam, element_lrs, group_lr_layout, position_lr)
+from endowave_cl.ops.adam import (ADAM_EPS, DeviceAdam, anneal_factor, element_lrs, group_lr_layout, position_lr)
 from endowave_cl.reference.adam import adam_step_ref
 
 LRS = {"means": 1.6e-4, "means_t": 1e-3, "scales": 5e-3, "quat_l": 1e-3, "quat_r": 2e-3,
@@ -241,6 +241,15 @@ def test_state_dict_round_trip_and_remap(rt):
         bad = dict(st)
         bad["exp_avg"] = dict(st["exp_avg"], opacity=np.zeros(2, np.float32))
         opt2.load_state_dict(bad)
+
+
+def test_anneal_factor():
+    assert anneal_factor(0, 10, 20, 0.01) == 1.0 and anneal_factor(10, 10, 20, 0.01) == 1.0
+    assert math.isclose(anneal_factor(15, 10, 20, 0.01), 0.1, rel_tol=1e-12)   # geometric midpoint
+    assert math.isclose(anneal_factor(20, 10, 20, 0.01), 0.01, rel_tol=1e-12)
+    assert math.isclose(anneal_factor(99, 10, 20, 0.01), 0.01, rel_tol=1e-12)  # held after the end
+    assert anneal_factor(11, 10, 10, 0.5) == 0.5                                # empty window: at the end
+    assert anneal_factor(15, 10, 20, 1.0) == 1.0
 
 
 def test_position_lr_schedule():

@@ -227,6 +227,18 @@ def _lr_position_steps(scene, rt, tmp_path):
     assert _lrs(TrainConfig(iterations=100), 10)["means"] > 2 * c.lr_position_final * 2.0
 
 
+def _lr_anneal_final(scene, rt, tmp_path):
+    """Every group but the means is multiplied by 1 up to densify_until, by the factor at the last
+    step and by its square root half-way (log-linear); the means keep their own decay."""
+    c = TrainConfig(iterations=100, densify_until=60, lr_anneal_final=0.04)
+    base = {s: _lrs(TrainConfig(iterations=100, densify_until=60), s) for s in (60, 80, 100)}
+    for s, factor in ((60, 1.0), (80, 0.2), (100, 0.04)):
+        got = _lrs(c, s)
+        assert got["means"] == base[s]["means"]
+        for g in ("means_t", "scales", "quat_l", "quat_r", "opacity", "sh", "sh_rest", "phase"):
+            assert got[g] == pytest.approx(factor * base[s][g], rel=1e-9), (s, g)
+
+
 def _lr_features_rest_divisor(scene, rt, tmp_path):
     assert _lrs(TrainConfig())["sh_rest"] == pytest.approx(2.5e-3 / 20)
     assert _lrs(TrainConfig(lr_features_rest_divisor=5.0))["sh_rest"] == pytest.approx(2.5e-3 / 5)
@@ -355,6 +367,37 @@ def _between_prob(scene, rt, tmp_path):
         assert len(times) == 4 and sum(t not in train_times for t in times) == want
 
 
+def _between_anneal_final(scene, rt, tmp_path):
+    """between_anneal_final: the in-between chance is between_prob until densify_until, then falls
+    linearly to between_prob x the factor at the last step; with factor 0 the last steps of a run
+    are all at training frames."""
+    c = TrainConfig(iterations=100, densify_until=60, between_prob=0.5, between_anneal_final=0.2)
+    tr = SimpleNamespace(cfg=c)
+    from endowave_cl.train.trainer import Trainer
+    got = [Trainer.between_prob(tr, s) for s in (0, 60, 80, 100, 120)]
+    assert got == pytest.approx([0.5, 0.5, 0.3, 0.1, 0.1], rel=1e-12)
+    train_times = {scene.frames[k].time for k in scene.train_indices}
+    tr = _trainer(scene, rt, tmp_path, iterations=6, between_prob=1.0, between_anneal_final=0.0,
+                  densify_from=100, densify_until=3)
+    times = []
+    real = tr._step
+    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
+
+    class HalfDraw:    # the trainer's generator, except that every chance draw is 0.5
+        def __init__(self, rng):
+            self._rng = rng
+
+        def random(self):
+            return 0.5
+
+        def __getattr__(self, name):
+            return getattr(self._rng, name)
+    tr.rng = HalfDraw(tr.rng)
+    tr.train(progress=False)
+    # chances 1, 1, 1, 1 up to densify_until, then 2/3 and 1/3: only the last step drew below 0.5
+    assert [t not in train_times for t in times] == [True] * 5 + [False]
+
+
 def _adam_skip_culled(scene, rt, tmp_path):
     """adam_skip_culled: a Gaussian culled at the step's time (here: behind the camera) keeps its
     parameters and moments; without it, Adam moves it on the momentum of earlier steps."""
@@ -438,6 +481,7 @@ CHECKS = {
     "lr_scales": _lr("lr_scales", "scales", 0.01),
     "lr_rotation": _lr("lr_rotation", "quat_r", 0.003),
     "lr_phase": _lr("lr_phase", "phase", 0.01),
+    "lr_anneal_final": _lr_anneal_final,
     "adam_skip_culled": _adam_skip_culled,
     "densify_from": _loop_effect("densify_from", 3, _densify_from),
     "densify_every": _loop_effect("densify_every", 3, _densify_every),
@@ -458,6 +502,7 @@ CHECKS = {
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
     "lambda_flow_gaussian": _gaussian_flow_effect,
     "between_prob": _between_prob,
+    "between_anneal_final": _between_anneal_final,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -52,6 +52,14 @@ def position_lr(step: int, max_steps: int, init: float = 1.6e-4, final: float = 
     return float(math.exp((1.0 - u) * math.log(init) + u * math.log(final)) * extent)
 
 
+def anneal_factor(step: int, start: int, end: int, final: float) -> float:
+    """1 until ``start``, then log-linear to ``final`` at ``end`` (and ``final`` after it)."""
+    if final == 1.0 or step <= start:
+        return 1.0
+    u = 1.0 if end <= start else min((step - start) / float(end - start), 1.0)
+    return float(math.exp(u * math.log(final)))
+
+
 def group_lr_layout(name: str, shape: Tuple[int, ...], lrs: Mapping[str, float]) -> Tuple[int, int, float, float]:
     """(row_len, split, lr_a, lr_b) of a group: element j uses lr_a when j % row_len < split."""
     row = int(np.prod(shape[1:])) if len(shape) > 1 else 1

@@ -51,6 +51,8 @@ class TrainConfig:
     between_prob: float = 0.5       # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
                                     # (train/between.py); 0: training frames only (docs/QUALITY.md)
+    between_anneal_final: float = 1.0  # between_prob is multiplied by a factor that falls linearly
+                                    # from 1 at densify_until to this at the last step; 1: constant
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
@@ -70,6 +72,9 @@ class TrainConfig:
     lr_rotation: float = 1e-3           # both quaternions q_l, q_r
     lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
                                         # since the phase is part of the appearance model
+    lr_anneal_final: float = 1.0        # every group but the spatial means (already decayed) has its
+                                        # lr multiplied by a factor that falls log-linearly from 1 at
+                                        # densify_until to this at the last step; 1: constant rates
     adam_skip_culled: bool = True       # Adam leaves the Gaussians culled at the step's time alone
                                         # (parameters and moments), as gsplat's SelectiveAdam: a 4D
                                         # Gaussian outside its lifetime does not drift on momentum,
@@ -192,11 +197,11 @@ RANGES = {
     "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
-    "lr_phase": _NON_NEGATIVE,
+    "lr_phase": _NON_NEGATIVE, "lr_anneal_final": _POSITIVE,
     "densify_from": _NON_NEGATIVE, "densify_every": _AT_LEAST_1, "densify_until": _NON_NEGATIVE,
     "densify_grad_threshold": _NON_NEGATIVE, "percent_dense": _NON_NEGATIVE, "split_children": _AT_LEAST_1,
     "split_scale_divisor": _POSITIVE, "prune_opacity": (0, 1, True, False), "prune_screen_size": _POSITIVE,

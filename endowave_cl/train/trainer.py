@@ -95,16 +95,26 @@ class Trainer:
 
     # ------------------------------------------------------------------ setup
     def group_lrs(self, step: int) -> Dict[str, float]:
-        from ..ops.adam import position_lr
+        from ..ops.adam import anneal_factor, position_lr
         c = self.cfg
         steps = c.lr_position_steps or c.iterations
+        a = anneal_factor(step, c.densify_until, c.iterations, c.lr_anneal_final)
         return {
             "means": position_lr(step, steps, c.lr_position_init, c.lr_position_final, self.extent),
-            "means_t": c.lr_time,
-            "scales": c.lr_scales, "quat_l": c.lr_rotation, "quat_r": c.lr_rotation,
-            "opacity": c.lr_opacity, "sh": c.lr_features, "sh_rest": c.lr_features / c.lr_features_rest_divisor,
-            "phase": c.lr_phase,
+            "means_t": a * c.lr_time,
+            "scales": a * c.lr_scales, "quat_l": a * c.lr_rotation, "quat_r": a * c.lr_rotation,
+            "opacity": a * c.lr_opacity, "sh": a * c.lr_features,
+            "sh_rest": a * c.lr_features / c.lr_features_rest_divisor, "phase": a * c.lr_phase,
         }
+
+    def between_prob(self, step: int) -> float:
+        """The chance that this step is an in-between one: between_prob until densify_until, then
+        falling linearly to between_prob x between_anneal_final at the last step."""
+        c = self.cfg
+        if step <= c.densify_until or c.iterations <= c.densify_until:
+            return c.between_prob
+        u = min((step - c.densify_until) / float(c.iterations - c.densify_until), 1.0)
+        return c.between_prob * (1.0 - u * (1.0 - c.between_anneal_final))
 
     def _reset_stats(self):
         import pyopencl.array as cla
@@ -294,7 +304,7 @@ class Trainer:
                 break
             t_step = time.perf_counter()
             between = None
-            if self._between and self.rng.random() < c.between_prob:
+            if self._between and self.rng.random() < self.between_prob(self.step):
                 between = self.train_step_between()      # an in-between time (train/between.py)
             if between is None:
                 parts = self.train_step(order[int(self.rng.integers(len(order)))])
