@@ -118,3 +118,46 @@ def test_device_losses_tiny_oclgrind(rt):
                                             wavelet_config=WaveletConfig())
     assert total == pytest.approx(ref_total + parts["wavelet"], rel=1e-5)
     assert np.isfinite(v.get()).all()
+
+
+def _torch_blur(x, sigma):
+    """x [H, W, K] blurred by the separable window of device_losses.blur_window, zero border (torch)."""
+    from endowave_cl.train.device_losses import blur_window
+    w = torch.from_numpy(blur_window(sigma)).to(x.dtype)
+    r = len(w) // 2
+    y = x.permute(2, 0, 1).unsqueeze(1)                                   # [K, 1, H, W]
+    y = torch.nn.functional.conv2d(y, w.view(1, 1, 1, -1), padding=(0, r))
+    y = torch.nn.functional.conv2d(y, w.view(1, 1, -1, 1), padding=(r, 0))
+    return y.squeeze(1).permute(1, 2, 0)
+
+
+@pytest.mark.parametrize("sigma", [0.7, 1.5])
+def test_blur_host_and_device_match_torch(rt, sigma):
+    from endowave_cl.train.between import blur_host
+    from endowave_cl.train.device_losses import gaussian_blur
+    x = np.random.default_rng(5).uniform(0, 1, (21, 30, 6)).astype(np.float32)
+    want = _torch_blur(torch.from_numpy(x).double(), sigma).numpy()
+    np.testing.assert_allclose(gaussian_blur(rt, cla.to_device(rt.queue, x), sigma).get(), want, atol=2e-6)
+    np.testing.assert_allclose(blur_host(x[..., :3], sigma), want[..., :3], atol=2e-6)
+
+
+@pytest.mark.parametrize("mask", [True, False])
+def test_blurred_losses_match_torch(rt, mask):
+    # the in-between steps' losses (blur > 0): render and target blurred alike, the gradient taken
+    # back through the blur: the same as autograd through a torch blur
+    from endowave_cl.train.between import blur_host
+    sigma = 1.2
+    f, feats = frame(11, 26, 35, mask=mask, depth=False, flow=False)
+    f["image"] = blur_host(f["image"], sigma)
+    cfg = TrainConfig(use_wavelet=False)
+    x = torch.from_numpy(feats.copy()).requires_grad_(True)
+    xb = _torch_blur(x, sigma)
+    tgt_t = {k: (None if v is None else torch.from_numpy(v)) for k, v in f.items()}
+    ref_total, ref_parts = image_losses_ref({"image": xb[..., :3]}, tgt_t, cfg)
+    ref_total.backward()
+    tgt = prepare_targets(rt, f["image"], f["mask"])
+    total, parts, v = image_losses_and_grad(rt, cla.to_device(rt.queue, feats), tgt, cfg, CHANNELS, blur=sigma)
+    assert total == pytest.approx(float(ref_total.detach()), rel=1e-5)
+    assert parts["l1"] == pytest.approx(float(ref_parts["l1"]), rel=1e-5)
+    ref_grad = x.grad.numpy()
+    np.testing.assert_allclose(v.get(), ref_grad, rtol=1e-4, atol=1e-5 * np.abs(ref_grad).max())

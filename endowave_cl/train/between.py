@@ -36,9 +36,20 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def between_target(scene, pair, s: float) -> Tuple[np.ndarray, np.ndarray, float]:
+def blur_host(image: np.ndarray, sigma: float) -> np.ndarray:
+    """image [H, W] or [H, W, K] blurred as device_losses.gaussian_blur blurs (same window, zero
+    border), in float32."""
+    import cv2
+    from .device_losses import blur_window
+    w = blur_window(sigma)
+    return cv2.sepFilter2D(np.ascontiguousarray(image, np.float32), -1, w, w, borderType=cv2.BORDER_CONSTANT)
+
+
+def between_target(scene, pair, s: float, blur: float = 0.0) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
-    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere."""
+    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  blur > 0: the
+    image blurred (blur_host), and with tool masks the weight kept only where the blur window sees
+    no masked pixel."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     w0 = warp_backward(f0.image, pair.flow, s)
     w1 = warp_backward(f1.image, pair.flow_bw, 1.0 - s)
@@ -47,6 +58,10 @@ def between_target(scene, pair, s: float) -> Tuple[np.ndarray, np.ndarray, float
     for f, flow, frac in ((f0, pair.flow, s), (f1, pair.flow_bw, 1.0 - s)):
         if f.mask is not None:
             weight *= (warp_backward(np.asarray(f.mask, np.float32), flow, frac) > 0.5).astype(np.float32)
+    if blur > 0:
+        image = blur_host(image, blur)
+        if not weight.all():
+            weight = (blur_host(1.0 - weight, blur) < 1e-6).astype(np.float32)
     t = (1.0 - s) * float(f0.time) + s * float(f1.time)
     return image, weight, t
 
@@ -55,8 +70,8 @@ class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
     uniformly, then s uniformly in (0, 1)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object]):
-        self.rt, self.scene = rt, scene
+    def __init__(self, rt, scene, flows: Dict[int, object], blur: float = 0.0):
+        self.rt, self.scene, self.blur = rt, scene, blur
         self.pairs = usable_pairs(scene, flows)
 
     def __bool__(self) -> bool:
@@ -66,7 +81,7 @@ class BetweenSampler:
         from .device_losses import prepare_targets
         pair = self.pairs[int(rng.integers(len(self.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s)
+        image, weight, t = between_target(self.scene, pair, s, self.blur)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)
