@@ -61,11 +61,27 @@ def mean_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5) -
 def warp_backward(image: np.ndarray, flow: np.ndarray, s: float) -> np.ndarray:
     """image sampled at p - s flow(p) (bilinear, border repeated): the frame moved a fraction s of
     the way along its flow."""
-    h, w = flow.shape[:2]
+    return sample_displaced(image, -s * np.asarray(flow, np.float32))
+
+
+def sample_displaced(image: np.ndarray, disp: np.ndarray) -> np.ndarray:
+    """image [H, W(, K)] sampled at p + disp(p) (disp [H, W, 2], pixels (x, y); bilinear, border
+    repeated), float32."""
+    h, w = disp.shape[:2]
     u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    mx = (u - s * flow[..., 0]).astype(np.float32)
-    my = (v - s * flow[..., 1]).astype(np.float32)
+    mx = (u + disp[..., 0]).astype(np.float32)
+    my = (v + disp[..., 1]).astype(np.float32)
     return cv2.remap(np.asarray(image, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def two_flow_displacements(f01: np.ndarray, f10: np.ndarray, t: float):
+    """(d_t0, d_t1) [H, W, 2]: where the pixels of the frame at fraction t between frames 0 and 1
+    are found in frame 0 and in frame 1, from both flows (f01: 0 -> 1, f10: 1 -> 0), as Super
+    SloMo (Jiang et al., CVPR 2018) approximates them: d_t0 = -(1 - t) t f01 + t^2 f10,
+    d_t1 = (1 - t)^2 f01 - t (1 - t) f10.  Where f10 = -f01 this is warp_backward's -t f01 and
+    (1 - t) f01; where the two disagree it averages them, weighted by the nearer frame."""
+    f01, f10 = np.asarray(f01, np.float32), np.asarray(f10, np.float32)
+    return (-(1.0 - t) * t * f01 + t * t * f10), ((1.0 - t) ** 2 * f01 - t * (1.0 - t) * f10)
 
 
 def dis_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5, method: str = "dis") -> np.ndarray:

@@ -22,7 +22,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..baselines import warp_backward
+from ..baselines import sample_displaced, two_flow_displacements
 
 
 def _same_camera(a, b) -> bool:
@@ -45,19 +45,23 @@ def blur_host(image: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.sepFilter2D(np.ascontiguousarray(image, np.float32), -1, w, w, borderType=cv2.BORDER_CONSTANT)
 
 
-def between_target(scene, pair, s: float, blur: float = 0.0) -> Tuple[np.ndarray, np.ndarray, float]:
+def between_target(scene, pair, s: float, blur: float = 0.0,
+                   two_flow: bool = False) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
-    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  blur > 0: the
-    image blurred (blur_host), and with tool masks the weight kept only where the blur window sees
-    no masked pixel."""
+    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
+    where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
+    instead of each frame's own.  blur > 0: the image blurred (blur_host), and with tool masks the
+    weight kept only where the blur window sees no masked pixel."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    w0 = warp_backward(f0.image, pair.flow, s)
-    w1 = warp_backward(f1.image, pair.flow_bw, 1.0 - s)
-    image = ((1.0 - s) * w0 + s * w1).astype(np.float32)
+    if two_flow:
+        d0, d1 = two_flow_displacements(pair.flow, pair.flow_bw, s)              # [H, W, 2] each
+    else:
+        d0, d1 = -s * pair.flow, -(1.0 - s) * pair.flow_bw
+    image = ((1.0 - s) * sample_displaced(f0.image, d0) + s * sample_displaced(f1.image, d1)).astype(np.float32)
     weight = np.ones(image.shape[:2], np.float32)
-    for f, flow, frac in ((f0, pair.flow, s), (f1, pair.flow_bw, 1.0 - s)):
+    for f, d in ((f0, d0), (f1, d1)):
         if f.mask is not None:
-            weight *= (warp_backward(np.asarray(f.mask, np.float32), flow, frac) > 0.5).astype(np.float32)
+            weight *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
     if blur > 0:
         image = blur_host(image, blur)
         if not weight.all():
@@ -70,8 +74,8 @@ class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
     uniformly, then s uniformly in (0, 1)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], blur: float = 0.0):
-        self.rt, self.scene, self.blur = rt, scene, blur
+    def __init__(self, rt, scene, flows: Dict[int, object], blur: float = 0.0, two_flow: bool = False):
+        self.rt, self.scene, self.blur, self.two_flow = rt, scene, blur, two_flow
         self.pairs = usable_pairs(scene, flows)
 
     def __bool__(self) -> bool:
@@ -81,7 +85,7 @@ class BetweenSampler:
         from .device_losses import prepare_targets
         pair = self.pairs[int(rng.integers(len(self.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s, self.blur)
+        image, weight, t = between_target(self.scene, pair, s, self.blur, self.two_flow)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)

@@ -53,6 +53,9 @@ class TrainConfig:
                                     # (train/between.py); 0: training frames only (docs/QUALITY.md)
     between_anneal_final: float = 1.0  # between_prob is multiplied by a factor that falls linearly
                                     # from 1 at densify_until to this at the last step; 1: constant
+    between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
+                                    # (Super SloMo's intermediate flow, baselines.py
+                                    # two_flow_displacements) instead of each frame's own flow
     between_blur: float = 0.0       # px: std of a Gaussian blur applied to both the render and the
                                     # in-between target before that step's losses, so that the flow
                                     # prediction teaches where the tissue is and the training frames

@@ -90,7 +90,8 @@ class Trainer:
         self._reset_stats()
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
-        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {}, cfg.between_blur)
+        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {}, cfg.between_blur,
+                                       cfg.between_two_flow)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
