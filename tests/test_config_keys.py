@@ -474,6 +474,21 @@ def _between_blur(scene, rt, tmp_path):
     assert not np.allclose(dev.image.get(), image, atol=1e-3)
 
 
+def _between_two_flow(scene, rt, tmp_path):
+    """between_two_flow: the drawn in-between target is the two-flow construction of the pair."""
+    from endowave_cl.train.between import between_target
+    for two_flow in (False, True):
+        tr = _trainer(scene, rt, tmp_path / str(two_flow), iterations=0, between_prob=1.0,
+                      between_two_flow=two_flow)
+        _, _, dev = tr._between.draw(np.random.default_rng(3))
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        want, other = (between_target(scene, pair, s, two_flow=f)[0] for f in (two_flow, not two_flow))
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        assert not np.allclose(dev.image.get(), other, atol=1e-4)
+
+
 CHECKS = {
     "iterations": _loop_effect("iterations", 4, _iterations),
     "minutes": _minutes,
@@ -523,6 +538,7 @@ CHECKS = {
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
     "between_blur": _between_blur,
+    "between_two_flow": _between_two_flow,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),
