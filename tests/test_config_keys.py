@@ -231,7 +231,7 @@ def _lr_anneal_final(scene, rt, tmp_path):
     """Every group but the means is multiplied by 1 up to densify_until, by the factor at the last
     step and by its square root half-way (log-linear); the means keep their own decay."""
     c = TrainConfig(iterations=100, densify_until=60, lr_anneal_final=0.04)
-    base = {s: _lrs(TrainConfig(iterations=100, densify_until=60), s) for s in (60, 80, 100)}
+    base = {s: _lrs(TrainConfig(iterations=100, densify_until=60, lr_anneal_final=1.0), s) for s in (60, 80, 100)}
     for s, factor in ((60, 1.0), (80, 0.2), (100, 0.04)):
         got = _lrs(c, s)
         assert got["means"] == base[s]["means"]

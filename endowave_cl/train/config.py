@@ -51,8 +51,9 @@ class TrainConfig:
     between_prob: float = 0.5       # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
                                     # (train/between.py); 0: training frames only (docs/QUALITY.md)
-    between_anneal_final: float = 1.0  # between_prob is multiplied by a factor that falls linearly
-                                    # from 1 at densify_until to this at the last step; 1: constant
+    between_anneal_final: float = 0.0  # between_prob is multiplied by a factor that falls linearly
+                                    # from 1 at densify_until to this at the last step (0: the run
+                                    # ends on the training frames alone; 1: constant; QUALITY.md)
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow
@@ -79,7 +80,7 @@ class TrainConfig:
     lr_rotation: float = 1e-3           # both quaternions q_l, q_r
     lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
                                         # since the phase is part of the appearance model
-    lr_anneal_final: float = 1.0        # every group but the spatial means (already decayed) has its
+    lr_anneal_final: float = 0.3        # every group but the spatial means (already decayed) has its
                                         # lr multiplied by a factor that falls log-linearly from 1 at
                                         # densify_until to this at the last step; 1: constant rates
     adam_skip_culled: bool = True       # Adam leaves the Gaussians culled at the step's time alone
