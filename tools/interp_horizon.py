@@ -52,6 +52,9 @@ def main(argv=None) -> int:
     ap.add_argument("scene")
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--gaps", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--per-frame", action="store_true",
+                    help="also print the DIS interpolation's PSNR per test frame and gap, and that of the "
+                         "gap-1 and gap-2 interpolations blended 2:1")
     a = ap.parse_args(argv)
     from endowave_cl.data.scene import load_scene
     from endowave_cl.errors import EndowaveError
@@ -66,13 +69,17 @@ def main(argv=None) -> int:
     n = len(sc.frames)
     test = set(sc.test_indices)
     print(f"{a.scene} {sc.width}x{sc.height}, {n} frames; load {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    per_frame = {}      # (k, d) -> {name: image} for the test frames, with --per-frame
     print("| gap d | frames | mean (all) | dis (all) | dis two-flow (all) | mean (test) | dis (test) | dis two-flow (test) |")
     print("|---|---|---|---|---|---|---|---|")
     for d in a.gaps:
         scores = {}     # name -> [(k, psnr)]
         for k in range(d, n - d):
-            for name, img in interpolations(sc.frames[k - d].image, sc.frames[k + d].image).items():
+            images = interpolations(sc.frames[k - d].image, sc.frames[k + d].image)
+            for name, img in images.items():
                 scores.setdefault(name, []).append((k, psnr(img, sc.frames[k].image)))
+            if a.per_frame and k in test:
+                per_frame[(k, d)] = images
         if not scores:
             print(f"| {d} | 0 | | | | | | |")
             continue
@@ -81,6 +88,15 @@ def main(argv=None) -> int:
         on_test = [[p for k, p in scores[m] if k in test] for m in names]
         cells = [f"{x:.2f}" for x in every] + [f"{np.mean(x):.2f}" if x else "" for x in on_test]
         print(f"| {d} | {len(scores['dis'])} | " + " | ".join(cells) + " |")
+    if a.per_frame:
+        print("\nDIS interpolation per test frame (dB):")
+        for k in sorted(test):
+            row = [f"d={d}: {psnr(per_frame[(k, d)]['dis'], sc.frames[k].image):.2f}"
+                   for d in a.gaps if (k, d) in per_frame]
+            if (k, 1) in per_frame and (k, 2) in per_frame:
+                blend = (2.0 * per_frame[(k, 1)]["dis"] + per_frame[(k, 2)]["dis"]) / 3.0
+                row.append(f"gaps 1 and 2 blended 2:1: {psnr(blend, sc.frames[k].image):.2f}")
+            print(f"  frame {k}: " + ", ".join(row))
     return 0
 
 
