@@ -102,22 +102,6 @@ def test_between_target_two_flow():
     assert not np.allclose(two[inner], scene.frames[1].image[inner], atol=3e-3)
 
 
-def test_between_target_blurred():
-    # between_blur: the prediction blurred, and with a tool mask the weight kept only where the
-    # blur's window (radius ceil(3 sigma) = 3 px here) sees no tool
-    from endowave_cl.train.between import between_target, blur_host
-    H, W = 40, 56
-    mask = np.ones((H, W), np.float32)
-    mask[:, :10] = 0.0
-    scene, pair, _ = _scene_and_pair(shift=(4.0, 0.0), mask=mask)
-    sharp, w_sharp, t = between_target(scene, pair, 0.5)
-    image, weight, t_blur = between_target(scene, pair, 0.5, blur=1.0)
-    assert t_blur == t
-    np.testing.assert_allclose(image, blur_host(sharp, 1.0), atol=1e-7)
-    assert weight[:, :17].max() == 0.0 and weight[:, 17:].min() == 1.0
-    assert w_sharp[:, 14:17].min() == 1.0
-
-
 def test_pairs_with_a_moving_camera_are_not_used():
     from endowave_cl.train.between import usable_pairs
     scene, pair, _ = _scene_and_pair()
@@ -143,7 +127,7 @@ def test_trainer_steps_between_frames(rt, tiny_scene, tmp_path):
     before = download(tr.params).sh.copy()
     times = []
     real_step = tr._step
-    tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real_step(cam, t, t_next, dev, what, **kw))[1]
+    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real_step(cam, t, t_next, dev, what))[1]
     tr.train(progress=False)
     train_times = {scene.frames[k].time for k in scene.train_indices}
     assert len(times) == 6 and not any(t in train_times for t in times)

@@ -362,7 +362,7 @@ def _between_prob(scene, rt, tmp_path):
         tr = _trainer(scene, rt, tmp_path / str(prob), iterations=4, between_prob=prob, densify_from=100)
         times = []
         real = tr._step
-        tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real(cam, t, t_next, dev, what, **kw))[1]
+        tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
         tr.train(progress=False)
         assert len(times) == 4 and sum(t not in train_times for t in times) == want
 
@@ -381,7 +381,7 @@ def _between_anneal_final(scene, rt, tmp_path):
                   densify_from=100, densify_until=3)
     times = []
     real = tr._step
-    tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real(cam, t, t_next, dev, what, **kw))[1]
+    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
 
     class HalfDraw:    # the trainer's generator, except that every chance draw is 0.5
         def __init__(self, rng):
@@ -455,25 +455,6 @@ def _wavelet_changes(b, n):
     assert n["l1"] == b["l1"]
 
 
-def _between_blur(scene, rt, tmp_path):
-    """between_blur: the in-between steps compare the render and their target blurred by a Gaussian
-    of this std (px): the drawn target is the flow prediction blurred, and the losses get the blur."""
-    from endowave_cl.train.between import between_target, blur_host
-    tr = _trainer(scene, rt, tmp_path, iterations=3, between_prob=1.0, between_blur=1.5, densify_from=100)
-    blurs = []
-    real = tr.losses_enqueue
-    tr.losses_enqueue = lambda out, dev, blur=0.0: (blurs.append(blur), real(out, dev, blur))[1]
-    tr.train(progress=False)
-    assert blurs == [1.5] * 3
-    # one draw, and the same draw repeated by hand without the blur
-    _, _, dev = tr._between.draw(np.random.default_rng(7))
-    rng = np.random.default_rng(7)
-    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-    image, _, _ = between_target(scene, pair, float(rng.uniform(0.0, 1.0)))
-    np.testing.assert_allclose(dev.image.get(), blur_host(image, 1.5), atol=1e-6)
-    assert not np.allclose(dev.image.get(), image, atol=1e-3)
-
-
 def _between_two_flow(scene, rt, tmp_path):
     """between_two_flow: the drawn in-between target is the two-flow construction of the pair."""
     from endowave_cl.train.between import between_target
@@ -537,7 +518,6 @@ CHECKS = {
     "lambda_flow_gaussian": _gaussian_flow_effect,
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
-    "between_blur": _between_blur,
     "between_two_flow": _between_two_flow,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),

@@ -36,22 +36,11 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def blur_host(image: np.ndarray, sigma: float) -> np.ndarray:
-    """image [H, W] or [H, W, K] blurred as device_losses.gaussian_blur blurs (same window, zero
-    border), in float32."""
-    import cv2
-    from .device_losses import blur_window
-    w = blur_window(sigma)
-    return cv2.sepFilter2D(np.ascontiguousarray(image, np.float32), -1, w, w, borderType=cv2.BORDER_CONSTANT)
-
-
-def between_target(scene, pair, s: float, blur: float = 0.0,
-                   two_flow: bool = False) -> Tuple[np.ndarray, np.ndarray, float]:
+def between_target(scene, pair, s: float, two_flow: bool = False) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
-    instead of each frame's own.  blur > 0: the image blurred (blur_host), and with tool masks the
-    weight kept only where the blur window sees no masked pixel."""
+    instead of each frame's own."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     if two_flow:
         d0, d1 = two_flow_displacements(pair.flow, pair.flow_bw, s)              # [H, W, 2] each
@@ -62,10 +51,6 @@ def between_target(scene, pair, s: float, blur: float = 0.0,
     for f, d in ((f0, d0), (f1, d1)):
         if f.mask is not None:
             weight *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
-    if blur > 0:
-        image = blur_host(image, blur)
-        if not weight.all():
-            weight = (blur_host(1.0 - weight, blur) < 1e-6).astype(np.float32)
     t = (1.0 - s) * float(f0.time) + s * float(f1.time)
     return image, weight, t
 
@@ -74,8 +59,8 @@ class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
     uniformly, then s uniformly in (0, 1)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], blur: float = 0.0, two_flow: bool = False):
-        self.rt, self.scene, self.blur, self.two_flow = rt, scene, blur, two_flow
+    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False):
+        self.rt, self.scene, self.two_flow = rt, scene, two_flow
         self.pairs = usable_pairs(scene, flows)
 
     def __bool__(self) -> bool:
@@ -85,7 +70,7 @@ class BetweenSampler:
         from .device_losses import prepare_targets
         pair = self.pairs[int(rng.integers(len(self.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s, self.blur, self.two_flow)
+        image, weight, t = between_target(self.scene, pair, s, self.two_flow)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)

@@ -57,10 +57,6 @@ class TrainConfig:
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow
-    between_blur: float = 0.0       # px: std of a Gaussian blur applied to both the render and the
-                                    # in-between target before that step's losses, so that the flow
-                                    # prediction teaches where the tissue is and the training frames
-                                    # its fine texture (train/between.py); 0: no blur
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
@@ -205,7 +201,7 @@ RANGES = {
     "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT, "between_blur": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

@@ -96,21 +96,6 @@ def _blur(rt, x, window) -> object:
     return conv_axis(rt, conv_axis(rt, x, window, axis=1, border="zero"), window, axis=0, border="zero")
 
 
-def blur_window(sigma: float) -> np.ndarray:
-    """[2 ceil(3 sigma) + 1] float64 normalised Gaussian of std sigma px (the in-between steps' blur,
-    train/between.py)."""
-    return gaussian_window_1d(2 * int(np.ceil(3.0 * sigma)) + 1, sigma)
-
-
-def gaussian_blur(rt, x, sigma: float) -> object:
-    """x [H, W, K] blurred by the separable Gaussian of std sigma px, zero border.  The window is
-    symmetric, so this is also its own adjoint: d loss / d x = gaussian_blur(d loss / d blurred)."""
-    import pyopencl.array as cla
-    window = rt.cached(f"blur.window.{sigma!r}",
-                       lambda: cla.to_device(rt.queue, blur_window(sigma).astype(np.float32)))
-    return _blur(rt, x, window)
-
-
 @dataclass
 class PendingLosses:
     """The losses of one step, enqueued on the device: the gradient image, the device sums the loss
@@ -123,33 +108,26 @@ class PendingLosses:
 
 
 def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
-                          wavelet_config=None, blur: float = 0.0) -> Tuple[float, Dict[str, float], object]:
+                          wavelet_config=None) -> Tuple[float, Dict[str, float], object]:
     """(total loss, its parts, v_features [H, W, CF]) for the rendered features [H, W, CF] (cla).
 
     cfg: a TrainConfig (lambda_*, use_depth, use_flow, use_wavelet); channels: {"depth": k,
     "flow": k} (the colour is channels 0..2).  Terms whose targets are missing are left out, as
     in image_losses_ref (reference/losses.py).  parts: l1, ssim, rgb, [depth], [flow], [wavelet], total, psnr.
-    blur > 0: the losses compare gaussian_blur(features, blur) with tgt (whose image is blurred
-    already, train/between.py), and v_features is taken back through the blur.
     Reads the sums back (one read); the trainer uses image_losses_enqueue and reads them with the
     step's other scalars.
     """
     from ..ops.util import read_back
-    pending = image_losses_enqueue(rt, features, tgt, cfg, channels, wavelet_config, blur)
+    pending = image_losses_enqueue(rt, features, tgt, cfg, channels, wavelet_config)
     total, parts = pending.finish(read_back(rt, pending.sums))
     return total, parts, pending.v_features
 
 
 def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
-                         wavelet_config=None, blur: float = 0.0) -> PendingLosses:
+                         wavelet_config=None) -> PendingLosses:
     """image_losses_and_grad without the read-back: the kernels are enqueued, nothing is read."""
     import pyopencl as cl
     import pyopencl.array as cla
-
-    if blur > 0:
-        pending = image_losses_enqueue(rt, gaussian_blur(rt, features, blur), tgt, cfg, channels, wavelet_config)
-        pending.v_features = gaussian_blur(rt, pending.v_features, blur)   # the blur's adjoint: itself
-        return pending
 
     if features.ndim != 3 or features.dtype != np.float32:
         raise ValueError(f"features must be a float32 [H, W, C] array, got {features.dtype} {features.shape}")

@@ -90,7 +90,7 @@ class Trainer:
         self._reset_stats()
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
-        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {}, cfg.between_blur,
+        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
                                        cfg.between_two_flow)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
@@ -165,15 +165,13 @@ class Trainer:
         if drawn is None:
             return None
         camera, t, dev = drawn
-        return self._step(camera, t, None, dev, f"time {t:.4f}", blur=self.cfg.between_blur)
+        return self._step(camera, t, None, dev, f"time {t:.4f}")
 
-    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str,
-              blur: float = 0.0) -> Dict[str, float]:
-        """render at t (flow to t_next) -> losses against dev (DeviceTargets; with blur > 0 both
-        blurred, between_target) -> adjoints -> Adam."""
+    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str) -> Dict[str, float]:
+        """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam."""
         from ..ops.util import nonfinite_flag, read_back
         out = render(self.rt, self.params, camera, t, t_next)                            # forward
-        pending = self.losses_enqueue(out, dev, blur)                                    # losses
+        pending = self.losses_enqueue(out, dev)                                          # losses
         grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
                                 v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
                                 deterministic=True if self.cfg.deterministic else None,
@@ -186,16 +184,15 @@ class Trainer:
         self.step += 1
         return parts
 
-    def losses_enqueue(self, out, dev, blur: float = 0.0):
+    def losses_enqueue(self, out, dev):
         """The step's losses against dev (device_losses.DeviceTargets; a FrameTargets is accepted
         too) enqueued on the device (train/device_losses.py): a PendingLosses with the gradient image
         v_features [H, W, C], the per-Gaussian flow loss's gradient v_gaussian_features [N, C] and
-        the sums the host reads back.  blur > 0: the image losses compare the render blurred by
-        device_losses.gaussian_blur with dev (blurred already)."""
+        the sums the host reads back."""
         from .device_losses import gaussian_flow_enqueue, image_losses_enqueue
         dev = getattr(dev, "dev", dev)
         channels = {"depth": DEPTH, "flow": FLOW.start}
-        pending = image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config, blur)
+        pending = image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config)
         return gaussian_flow_enqueue(self.rt, out, dev, self.cfg, channels, pending)
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
