@@ -5,9 +5,10 @@ Trains the defaults ("full") and the same run with one loss removed (flow, wavel
 without the steps between training frames (no_between: between_prob 0), with the in-between
 steps kept until the end instead of fading out after densify_until (no_between_fade), without
 the late learning-rate decay (no_lr_anneal; both schedules start at densify_until: with fewer
---iterations than that, give --set densify_until=N below it), or with the optional per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one
-scene, for each seed; evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the
-neighbour-mean and DIS-interpolation baselines, the rendered flow's EPE where the scene has gt_flow/,
+--iterations than that, give --set densify_until=N below it), or with the optional
+per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one scene, for each seed;
+evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the neighbour-mean and
+DIS-interpolation baselines, the rendered flow's EPE where the scene has gt_flow/,
 the depth error where it has depth) and prints one row per variant with the mean and spread over
 the seeds.  Writes ablation.json and ablation.md into --out.
 

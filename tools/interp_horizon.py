@@ -12,8 +12,7 @@ frames alone, the PSNR of:
 - ``dis``: OpenCV DIS flow both ways between them, each warped half-way and averaged (the DIS
   baseline's construction, baselines.py);
 - ``dis two-flow``: the same with the intermediate flow taken from both flows, as Super SloMo
-  (Jiang et al., CVPR 2018) approximates it at time fraction t:
-  F_t0 = -(1 - t) t F_01 + t^2 F_10, F_t1 = (1 - t)^2 F_01 - t (1 - t) F_10.
+  approximates it (baselines.two_flow_displacements).
 
     python tools/interp_horizon.py ../shared/data/endonerf/pulling_soft_tissues --downscale 2 --gaps 1 2 3
 """
@@ -26,25 +25,15 @@ import sys
 import numpy as np
 
 
-def _sample(image: np.ndarray, disp: np.ndarray) -> np.ndarray:
-    """image sampled at p + disp(p) (bilinear, border repeated)."""
-    import cv2
-    h, w = disp.shape[:2]
-    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    return cv2.remap(np.asarray(image, np.float32), (u + disp[..., 0]).astype(np.float32),
-                     (v + disp[..., 1]).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
 def interpolations(im0: np.ndarray, im1: np.ndarray, t: float = 0.5):
     """{"mean", "dis", "dis two-flow"}: images [H, W, 3] at fraction t between im0 and im1."""
-    from endowave_cl.baselines import mean_interpolation, warp_backward
+    from endowave_cl.baselines import mean_interpolation, sample_displaced, two_flow_displacements, warp_backward
     from endowave_cl.data.flow import estimate_flow
     f01, f10 = estimate_flow(im0, im1, "dis"), estimate_flow(im1, im0, "dis")     # [H, W, 2] each
-    ft0 = -(1.0 - t) * t * f01 + t * t * f10
-    ft1 = (1.0 - t) ** 2 * f01 - t * (1.0 - t) * f10
+    d0, d1 = two_flow_displacements(f01, f10, t)
     return {"mean": mean_interpolation(im0, im1, t),
             "dis": mean_interpolation(warp_backward(im0, f01, t), warp_backward(im1, f10, 1.0 - t), t),
-            "dis two-flow": mean_interpolation(_sample(im0, ft0), _sample(im1, ft1), t)}
+            "dis two-flow": mean_interpolation(sample_displaced(im0, d0), sample_displaced(im1, d1), t)}
 
 
 def main(argv=None) -> int:
