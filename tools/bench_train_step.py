@@ -9,7 +9,7 @@ the median of as many Trainer.train_step calls (the step as training runs it: no
 the parts, its own read-backs and the NaN guard).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
-                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled]
+                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels]
 
 --checkpoint takes the Gaussians of a trained model instead (a real run's count, and Gaussians that
 live only part of the sequence: most of them are culled at any one time), with fresh Adam moments.
@@ -48,6 +48,10 @@ def main(argv=None):
     ap.add_argument("--adam-skip-culled", action="store_true",
                     help="Adam leaves the step's culled Gaussians alone (config key adam_skip_culled)")
     ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
+    ap.add_argument("--kernels", action="store_true",
+                    help="also print each part's summed kernel time (OpenCL event profiling of the "
+                         "Runtime's launches) and the step's slowest kernels: wall time far above "
+                         "kernel time means the host (launches, read-backs) is what the step waits for")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
 
@@ -66,6 +70,11 @@ def main(argv=None):
         make_synthetic_scene(scene_path, width=640, height=512, frames=16, seed=0)
     scene = load_scene(scene_path, downscale=args.downscale)
     rt = get_runtime(args.device)
+    events = None
+    if args.kernels:
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from kernel_events import kernel_ms, profile_launches
+        events = profile_launches(rt)   # before the trainer's first buffer
     cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0,
                       adam_skip_culled=args.adam_skip_culled)
@@ -84,6 +93,8 @@ def main(argv=None):
         parts = {"render": [], "losses": [], "backward": [], "project_bwd": [], "guard": [], "adam": [],
                  "step": []}   # project_bwd: part of backward
         cpu = []   # CPU seconds per step, all threads (moves much less than wall time under load)
+        kparts = {key: [] for key in ("render", "losses", "backward", "guard", "adam", "step")}
+        kernels = {}   # kernel name -> [ms per step]
 
         def cpu_s():
             r = resource.getrusage(resource.RUSAGE_SELF)
@@ -93,24 +104,40 @@ def main(argv=None):
             k = order[i % len(order)]
             f, tgt = scene.frames[k], tr.targets[k]
             rt.queue.finish()
+            if events is not None:
+                events.clear()
+            marks = []   # events launched before each part's end
             c0 = cpu_s()
             t0 = time.perf_counter()
             out = render(rt, tr.params, f.camera, f.time, tgt.next_time)
             rt.queue.finish()
             t1 = time.perf_counter()
+            marks.append(len(events or ()))
             total, _, v = tr.losses_and_gradient(out, tgt)
             rt.queue.finish()
             t2 = time.perf_counter()
+            marks.append(len(events or ()))
             grads = render_backward(rt, tr.params, out, v, densify_stats=tr.stats, timed=True,
                                     sh_factors=not args.full_sh)
             rt.queue.finish()
             t3 = time.perf_counter()
+            marks.append(len(events or ()))
             nonfinite_flag(rt, grads.values()).get()   # the NaN guard's check (train_step reads it with the sums)
             t3g = time.perf_counter()
+            marks.append(len(events or ()))
             tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0),
                          visible=out.proj.radius if cfg.adam_skip_culled else None)
             rt.queue.finish()
             t4 = time.perf_counter()
+            marks.append(len(events or ()))
+            if i >= args.warmup and events is not None:
+                lo = 0
+                for key, hi in zip(("render", "losses", "backward", "guard", "adam"), marks):
+                    kparts[key].append(sum(kernel_ms(events[lo:hi]).values()) * 1e-3)
+                    lo = hi
+                kparts["step"].append(sum(kernel_ms(events).values()) * 1e-3)
+                for name, ms in kernel_ms(events).items():
+                    kernels.setdefault(name, []).append(ms)
             if i >= args.warmup:
                 cpu.append(cpu_s() - c0)
                 for key, a, b in (("render", t0, t1), ("losses", t1, t2), ("backward", t2, t3), ("guard", t3, t3g),
@@ -118,7 +145,14 @@ def main(argv=None):
                     parts[key].append(b - a)
                 parts["project_bwd"].append(out.timings["project_bwd"] * 1e-3)
         for key, ts in parts.items():
-            print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms")
+            ks = f"   kernels {statistics.median(kparts[key]) * 1e3:7.1f} ms" if kparts.get(key) else ""
+            print(f"  {key:9s} {statistics.median(ts) * 1e3:9.1f} ms{ks}")
+        if kernels:
+            launches = sum(1 for _ in events)
+            print(f"  kernel time: OpenCL events of the {launches} Runtime launches of the last step "
+                  f"(pyopencl's fills and copies not counted); slowest kernels, median ms per step:")
+            top = sorted(kernels.items(), key=lambda kv: -statistics.median(kv[1]))[:8]
+            print("    " + ", ".join(f"{name} {statistics.median(ms):.2f}" for name, ms in top))
         print(f"  CPU time per step (all threads) {statistics.median(cpu) * 1e3:.1f} ms "
               f"(/ {os.cpu_count()} cores = {statistics.median(cpu) * 1e3 / (os.cpu_count() or 1):.1f} ms)")
         print(f"seconds per training step: {statistics.median(parts['step']):.3f}; "

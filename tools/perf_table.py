@@ -127,30 +127,17 @@ def main(argv=None):
     ap.add_argument("--png", default=None)
     args = ap.parse_args(argv)
 
-    import pyopencl as cl
     import pyopencl.array as cla
 
     from bench_render import FOCAL, tissue_scene
+    from kernel_events import kernel_ms, profile_launches
     from endowave_cl.camera import Camera
     from endowave_cl.gaussians import upload
     from endowave_cl.render import render, render_backward
     from endowave_cl.runtime import Runtime, choose_device
 
     rt = Runtime(choose_device(args.device))
-    rt.queue = cl.CommandQueue(rt.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
-    events = []
-    plain_launch, plain_launch_1d = rt.launch, rt.launch_1d
-
-    def launch(kernel, *a):
-        ev = plain_launch(kernel, *a)
-        events.append((kernel.function_name, ev))
-        return ev
-
-    def launch_1d(kernel, *a):
-        ev = plain_launch_1d(kernel, *a)
-        events.append((kernel.function_name, ev))
-        return ev
-    rt.launch, rt.launch_1d = launch, launch_1d
+    events = profile_launches(rt)
 
     if args.peaks and os.path.isfile(args.peaks):
         with open(args.peaks) as f:
@@ -174,12 +161,10 @@ def main(argv=None):
         render_backward(rt, params, out, v_feat)
         rt.queue.finish()
         if i >= args.warmup:
-            tot = defaultdict(float)
-            for name, ev in events:
-                tot[name] += (ev.profile.end - ev.profile.start) * 1e-6
-                if i == args.warmup:
+            if i == args.warmup:
+                for name, _ in events:
                     launches[name] += 1
-            for k, v in tot.items():
+            for k, v in kernel_ms(events).items():
                 per[k].append(v)
 
     C = int(out.proj.features.shape[1])
