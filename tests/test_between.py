@@ -132,3 +132,50 @@ def test_trainer_steps_between_frames(rt, tiny_scene, tmp_path):
     train_times = {scene.frames[k].time for k in scene.train_indices}
     assert len(times) == 6 and not any(t in train_times for t in times)
     assert not np.array_equal(download(tr.params).sh, before)
+
+
+def test_sample_displaced_samplers():
+    from endowave_cl.baselines import sample_displaced
+    H, W, P = 24, 64, 5.0                                  # a sinusoid of 5 px period along x
+    x = np.arange(W, dtype=np.float32)
+    img = np.broadcast_to(0.5 + 0.4 * np.sin(2 * np.pi * x / P), (H, W)).astype(np.float32).copy()
+    inner = (slice(None), slice(4, -4))
+    for shift in (1.0, -2.0):                              # whole pixels: both are the shifted image
+        disp = np.zeros((H, W, 2), np.float32)
+        disp[..., 0] = shift
+        want = 0.5 + 0.4 * np.sin(2 * np.pi * (x + shift) / P)
+        for sampler in ("linear", "cubic"):
+            np.testing.assert_allclose(sample_displaced(img, disp, sampler)[inner], np.broadcast_to(want, (H, W))[inner],
+                                       atol=1e-5)
+    disp = np.zeros((H, W, 2), np.float32)
+    disp[..., 0] = 0.5                                     # half a pixel: bilinear averages two samples
+    want = np.broadcast_to(0.5 + 0.4 * np.sin(2 * np.pi * (x + 0.5) / P), (H, W))
+    err = {s: np.abs(sample_displaced(img, disp, s) - want)[inner].max() for s in ("linear", "cubic")}
+    # bilinear shrinks the sinusoid by cos(pi / P) (about 0.08 of its 0.4 amplitude); bicubic keeps it
+    assert err["linear"] > 0.06 and err["cubic"] < 0.03, err
+    # a step edge: the cubic kernel's overshoot is clipped to the image's range
+    step = np.zeros((H, W), np.float32)
+    step[:, W // 2:] = 1.0
+    disp[..., 0] = 0.3
+    out = sample_displaced(step, disp, "cubic")
+    assert out.min() >= 0.0 and out.max() <= 1.0
+    with pytest.raises(ValueError, match="sampler"):
+        sample_displaced(img, disp, "nearest")
+
+
+def test_between_target_sampler():
+    # the texture moves 1 px per frame: half-way both warps are whole pixels and both samplers give
+    # the middle frame; a quarter of the way (half a pixel) bicubic differs from bilinear; the
+    # supervised pixels are the same
+    from endowave_cl.train.between import between_target
+    scene, pair, _ = _scene_and_pair(shift=(1.0, 0.0))
+    inner = (slice(6, -6), slice(6, -6))
+    for s in (0.5, 0.25):
+        lin, w_lin, t = between_target(scene, pair, s)
+        cub, w_cub, t2 = between_target(scene, pair, s, sampler="cubic")
+        assert t2 == t
+        np.testing.assert_array_equal(w_cub, w_lin)
+        if s == 0.5:
+            np.testing.assert_allclose(cub[inner], scene.frames[1].image[inner], atol=1e-5)
+        else:
+            assert np.abs(cub - lin)[inner].max() > 1e-3

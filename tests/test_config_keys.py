@@ -470,6 +470,21 @@ def _between_two_flow(scene, rt, tmp_path):
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
 
 
+def _between_sampler(scene, rt, tmp_path):
+    """between_sampler: the drawn in-between target samples the frames with that sampler."""
+    from endowave_cl.train.between import between_target
+    for sampler in ("linear", "cubic"):
+        tr = _trainer(scene, rt, tmp_path / sampler, iterations=0, between_prob=1.0, between_sampler=sampler)
+        _, _, dev = tr._between.draw(np.random.default_rng(3))
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        other = "cubic" if sampler == "linear" else "linear"
+        want, not_want = (between_target(scene, pair, s, sampler=x)[0] for x in (sampler, other))
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        assert not np.allclose(dev.image.get(), not_want, atol=1e-4)
+
+
 CHECKS = {
     "iterations": _loop_effect("iterations", 4, _iterations),
     "minutes": _minutes,
@@ -519,6 +534,7 @@ CHECKS = {
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
     "between_two_flow": _between_two_flow,
+    "between_sampler": _between_sampler,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         model = render(rt, params, f.camera, f.time).host()["image"]
         dis = baseline_images(sc, k)["dis"]
         pair = pairs.get(i0)
-        target = (between_target(sc, pair, s, run.cfg.between_two_flow)[0]
+        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler)[0]
                   if pair is not None and pair.dst == i1 else None)
         r = [psnr(model, f.image), psnr(dis, f.image),
              np.nan if target is None else psnr(target, f.image),

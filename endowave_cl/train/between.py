@@ -36,17 +36,20 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def between_target(scene, pair, s: float, two_flow: bool = False) -> Tuple[np.ndarray, np.ndarray, float]:
+def between_target(scene, pair, s: float, two_flow: bool = False,
+                   sampler: str = "linear") -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
-    instead of each frame's own."""
+    instead of each frame's own.  sampler: how the frames are sampled between pixels
+    (baselines.SAMPLERS); the masks are always sampled bilinearly."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     if two_flow:
         d0, d1 = two_flow_displacements(pair.flow, pair.flow_bw, s)              # [H, W, 2] each
     else:
         d0, d1 = -s * pair.flow, -(1.0 - s) * pair.flow_bw
-    image = ((1.0 - s) * sample_displaced(f0.image, d0) + s * sample_displaced(f1.image, d1)).astype(np.float32)
+    image = ((1.0 - s) * sample_displaced(f0.image, d0, sampler)
+             + s * sample_displaced(f1.image, d1, sampler)).astype(np.float32)
     weight = np.ones(image.shape[:2], np.float32)
     for f, d in ((f0, d0), (f1, d1)):
         if f.mask is not None:
@@ -59,8 +62,8 @@ class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
     uniformly, then s uniformly in (0, 1)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False):
-        self.rt, self.scene, self.two_flow = rt, scene, two_flow
+    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear"):
+        self.rt, self.scene, self.two_flow, self.sampler = rt, scene, two_flow, sampler
         self.pairs = usable_pairs(scene, flows)
 
     def __bool__(self) -> bool:
@@ -70,7 +73,7 @@ class BetweenSampler:
         from .device_losses import prepare_targets
         pair = self.pairs[int(rng.integers(len(self.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s, self.two_flow)
+        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)

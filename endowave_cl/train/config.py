@@ -57,6 +57,9 @@ class TrainConfig:
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow
+    between_sampler: str = "linear" # how the in-between target samples the two frames between
+                                    # pixels (baselines.py SAMPLERS): "linear" (bilinear, the DIS
+                                    # baseline's warp) or "cubic" (bicubic: blurs less)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
@@ -248,6 +251,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         if getattr(cfg, name) != want:
             raise EndowaveError(f"{source}: key '{name}' must be {want} (the model layout is fixed in this "
                                 f"version; other values are not implemented), got {getattr(cfg, name)}")
+    from ..baselines import SAMPLERS
+    if cfg.between_sampler not in SAMPLERS:
+        raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
+                            f"got {cfg.between_sampler!r}")
     from ..data.flow import METHODS
     if cfg.flow_method not in METHODS:
         raise EndowaveError(f"{source}: key 'flow_method' must be one of {', '.join(METHODS)}, "
