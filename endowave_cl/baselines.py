@@ -9,12 +9,16 @@ report it"): two interpolations between the training frames around each test fra
   each frame backward-warped to the test time and the two blended by the time fraction:
   W0(p) = I0(p - a F01(p)), W1(p) = I1(p - (1 - a) F10(p)), result (1 - a) W0 + a W1.  The flow at
   p in the unseen frame is approximated by the flow at p in each neighbour (the usual half-way
-  warp for a = 1/2); samples outside the image repeat the border.
+  warp for a = 1/2); samples outside the image repeat the border.  The warps sample bilinearly.
+- ``dis_cubic``: the same interpolation with bicubic warps (``SAMPLERS``).  At the half-pixel
+  offsets of a midway warp bilinear sampling averages two pixels, a low-pass that costs fine
+  texture; bicubic sampling keeps more of it (on the pulling frames at 320x256: LPIPS 0.026 against
+  0.039, +0.05 dB; docs/QUALITY.md finding 10).  The stronger of the two interpolators is the bar.
 
 Neighbours are the nearest training frames before and after the test frame in time; at a sequence
-end only one exists, and both baselines are that frame.
+end only one exists, and every baseline is that frame.
 
-``baseline_scores`` scores both on a scene's test frames with ``metrics.frame_scores``, the same
+``baseline_scores`` scores them on a scene's test frames with ``metrics.frame_scores``, the same
 function the model is scored with, and keeps the result in memory per scene (path, size and split),
 so repeated evaluations (training-time, several runs in one process) compute it once.
 """
@@ -27,8 +31,9 @@ import numpy as np
 
 from .errors import EndowaveError
 
-NAMES = ("mean", "dis")
-LABELS = {"mean": "neighbour mean", "dis": "DIS flow interpolation"}
+NAMES = ("mean", "dis", "dis_cubic")
+LABELS = {"mean": "neighbour mean", "dis": "DIS flow interpolation",
+          "dis_cubic": "DIS flow interpolation, bicubic warps"}
 
 # (scene path, width, height, train, test) -> {"lpips": bool, "frames": [per test frame dict]}
 _CACHE: Dict[tuple, dict] = {}
@@ -96,26 +101,31 @@ def two_flow_displacements(f01: np.ndarray, f10: np.ndarray, t: float):
     return (-(1.0 - t) * t * f01 + t * t * f10), ((1.0 - t) ** 2 * f01 - t * (1.0 - t) * f10)
 
 
-def dis_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5, method: str = "dis") -> np.ndarray:
+def dis_interpolation(image0: np.ndarray, image1: np.ndarray, a: float = 0.5, method: str = "dis",
+                      sampler: str = "linear") -> np.ndarray:
     """Flow interpolation at time fraction a between image0 (a = 0) and image1 (a = 1); see the
-    module docstring.  [H, W, 3] float RGB in [0, 1] in and out."""
+    module docstring.  [H, W, 3] float RGB in [0, 1] in and out; sampler: SAMPLERS key of the warps."""
+    return dis_interpolations(image0, image1, a, method, (sampler,))[sampler]
+
+
+def dis_interpolations(image0: np.ndarray, image1: np.ndarray, a: float, method: str = "dis",
+                       samplers=("linear",)) -> Dict[str, np.ndarray]:
+    """{sampler: dis_interpolation(image0, image1, a, method, sampler)} from one pair of flows."""
+    if a <= 0.0 or a >= 1.0:
+        return {s: np.asarray(image0 if a <= 0.0 else image1, np.float32).copy() for s in samplers}
     from .data.flow import estimate_flow
-    if a <= 0.0:
-        return np.asarray(image0, np.float32).copy()
-    if a >= 1.0:
-        return np.asarray(image1, np.float32).copy()
     f01 = estimate_flow(image0, image1, method)
     f10 = estimate_flow(image1, image0, method)
-    w0 = warp_backward(image0, f01, a)
-    w1 = warp_backward(image1, f10, 1.0 - a)
-    return mean_interpolation(w0, w1, a)
+    return {s: mean_interpolation(sample_displaced(image0, -a * f01, s),
+                                  sample_displaced(image1, -(1.0 - a) * f10, s), a) for s in samplers}
 
 
 def baseline_images(scene, k: int) -> Dict[str, np.ndarray]:
-    """{"mean": image, "dis": image} for test frame k of a loaded scene."""
+    """{"mean": image, "dis": image, "dis_cubic": image} for test frame k of a loaded scene."""
     i0, i1, a = neighbours(scene, k)
     im0, im1 = scene.frames[i0].image, scene.frames[i1].image
-    return {"mean": mean_interpolation(im0, im1, a), "dis": dis_interpolation(im0, im1, a)}
+    dis = dis_interpolations(im0, im1, a, samplers=("linear", "cubic"))
+    return {"mean": mean_interpolation(im0, im1, a), "dis": dis["linear"], "dis_cubic": dis["cubic"]}
 
 
 def _key(scene) -> tuple:
@@ -126,7 +136,7 @@ def _key(scene) -> tuple:
 
 def baseline_scores(scene, with_lpips: bool = False) -> List[dict]:
     """Per test frame (in scene.test_indices order): {"index", "neighbours": [i0, i1], "fraction",
-    "mean": scores, "dis": scores}, scores as metrics.frame_scores gives them.  Cached in memory
+    "mean": scores, "dis": scores, "dis_cubic": scores}, scores as metrics.frame_scores gives them.  Cached in memory
     per scene path, size and split; an entry without LPIPS is recomputed when LPIPS is asked for."""
     from .metrics import frame_scores
     key = _key(scene)

@@ -168,7 +168,8 @@ def per_frame_plot_png(m: dict, title: str = "") -> bytes:
     idx = [r["index"] for r in rows]
     fig = Figure(figsize=(7.0, 3.6), dpi=110)
     ax = fig.add_subplot(1, 1, 1)
-    curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in (("mean", "s--"), ("dis", "^--"))
+    curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in (("mean", "s--"), ("dis", "^--"),
+                                                                                         ("dis_cubic", "v--"))
                                            if name in rows[0]]
     for key, label, style in curves:
         vals = [r[key]["psnr"] for r in rows]

@@ -83,6 +83,9 @@ def test_dis_interpolation_recovers_a_translated_pattern(a):
     p_dis, p_mean = _psnr(got[inner], tex[inner]), _psnr(blend[inner], tex[inner])
     print(f"a={a}: DIS interpolation {p_dis:.2f} dB, blend {p_mean:.2f} dB")
     assert p_dis > 35.0 and p_dis > p_mean + 10.0
+    cubic = B.dis_interpolation(f0, f1, a, sampler="cubic")     # the same flows, bicubic warps
+    assert _psnr(cubic[inner], tex[inner]) > 35.0
+    assert B.dis_interpolations(f0, f1, a, samplers=("linear", "cubic"))["linear"].tobytes() == got.tobytes()
 
 
 def test_warp_backward_moves_content_along_the_flow():
@@ -108,6 +111,7 @@ def test_baseline_scores_match_an_independent_computation_and_are_cached(monkeyp
     assert rows[0]["mean"]["psnr_masked"] == pytest.approx(10 * math.log10(3 * mask.sum() / sq.sum()), abs=1e-4)
     # and exactly what the model's scoring function gives for the same images
     assert rows[0]["dis"] == frame_scores(B.dis_interpolation(a, b, 0.5), gt, mask)
+    assert rows[0]["dis_cubic"] == frame_scores(B.dis_interpolation(a, b, 0.5, sampler="cubic"), gt, mask)
     assert rows[0]["mean"]["lpips"] is None
     summary = B.summarise(rows, "mean")
     assert summary["psnr"] == rows[0]["mean"]["psnr"] and summary["lpips"] is None
@@ -132,7 +136,7 @@ def test_eval_baselines_tool(tmp_path):
     r = _tool(scene, "--no-lpips", "--per-frame", "--json", tmp_path / "b.json")
     assert r.returncode == 0, r.stderr
     out = json.loads((tmp_path / "b.json").read_text())
-    assert set(out["baselines"]) == {"mean", "dis"} and out["flow"]["frames"] == 2
+    assert set(out["baselines"]) == {"mean", "dis", "dis_cubic"} and out["flow"]["frames"] == 2
     for line in ("host: ", "neighbour mean", "DIS flow interpolation", "gt_flow: DIS"):
         assert line in r.stdout, r.stdout
     assert f"{out['baselines']['dis']['psnr']:7.2f}" in r.stdout

@@ -143,14 +143,14 @@ def test_eval_command_baselines_margin_flow_and_figures(rt, scene_dir, tmp_path,
     assert m["step"] == 7 and (m["lpips"] is None) != lpips_available()
     # the baselines in eval.json are the test frames' baselines, scored like the model
     scene = load_scene(scene_dir)
-    for name in ("mean", "dis"):
+    for name in ("mean", "dis", "dis_cubic"):
         per = [frame_scores(baseline_images(scene, k)[name], scene.frames[k].image, scene.frames[k].mask)
                for k in scene.test_indices]
         assert m["baselines"][name]["psnr"] == pytest.approx(np.mean([p["psnr"] for p in per]), abs=1e-6)
         assert m["baselines"][name]["psnr_masked"] == pytest.approx(np.mean([p["psnr_masked"] for p in per]), abs=1e-6)
         assert m["baselines"][name]["ssim"] == pytest.approx(np.mean([p["ssim"] for p in per]), abs=1e-6)
     assert m["per_frame"][0]["neighbours"] == [0, 2] and m["per_frame"][0]["fraction"] == 0.5
-    best = max(("mean", "dis"), key=lambda n: m["baselines"][n]["psnr"])
+    best = max(("mean", "dis", "dis_cubic"), key=lambda n: m["baselines"][n]["psnr"])
     assert m["margin"]["over"] == best
     assert m["margin"]["psnr"] == pytest.approx(m["psnr"] - m["baselines"][best]["psnr"])
     assert m["margin"]["psnr_masked"] == pytest.approx(m["psnr_masked"] - m["baselines"][best]["psnr_masked"])

@@ -3,7 +3,7 @@
 carry the motion.
 
 1. PSNR by motion region on the test frames, beside the same regions of the neighbouring
-   training frames (what the model fits) and of the two baselines (endowave_cl/baselines.py).
+   training frames (what the model fits) and of the baselines (endowave_cl/baselines.py).
    A pixel's region is set by the DIS flow between the test frame's two neighbouring training
    frames: slow (< 2 px), mid (2-6 px), fast (>= 6 px).  The gap between the test and training
    columns is what the model loses between frames.

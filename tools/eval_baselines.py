@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """The baselines a 4D model must beat, on a scene's test frames, without any model: the mean of
-the two neighbouring training frames and a DIS optical-flow interpolation between them
+the two neighbouring training frames and a DIS optical-flow interpolation between them, with
+bilinear and with bicubic warps
 (endowave_cl/baselines.py), scored exactly as `endowave-cl eval` scores a model (PSNR in both
 forms, SSIM, LPIPS-Alex when its weights are installed).  On a scene with gt_flow/ it also prints
 DIS's end-point error from each test frame to the next (the reference `eval` puts beside the
@@ -70,17 +71,18 @@ def main(argv=None) -> int:
     print(f"{len(rows)} test frames; PSNR = whole image of masked images, masked = tissue pixels only; "
           f"LPIPS-Alex{lp_note}; {seconds:.1f} s")
     lp = lambda v: "n/a" if v is None else f"{v:.4f}"
-    print(f"{'baseline':<26} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}")
+    lw = max(len(LABELS[n]) for n in NAMES)
+    print(f"{'baseline':<{lw}} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}")
     summary = {}
     for name in NAMES:
         s = summarise(rows, name)
         summary[name] = s
-        print(f"{LABELS[name]:<26} {s['psnr']:7.2f} {s['psnr_masked']:7.2f} {s['ssim']:7.4f} {lp(s['lpips']):>7}")
+        print(f"{LABELS[name]:<{lw}} {s['psnr']:7.2f} {s['psnr_masked']:7.2f} {s['ssim']:7.4f} {lp(s['lpips']):>7}")
     if args.per_frame:
-        print(f"{'frame':>6} {'neighbours':>11} {'a':>5} " + " ".join(f"{n + ' PSNR':>10}" for n in NAMES))
+        print(f"{'frame':>6} {'neighbours':>11} {'a':>5} " + " ".join(f"{n + ' PSNR':>14}" for n in NAMES))
         for r in rows:
             print(f"{r['index']:>6} {str(tuple(r['neighbours'])):>11} {r['fraction']:5.2f} "
-                  + " ".join(f"{r[n]['psnr']:10.2f}" for n in NAMES))
+                  + " ".join(f"{r[n]['psnr']:14.2f}" for n in NAMES))
     dis_flow = None
     if refs:
         import numpy as np

@@ -13,7 +13,9 @@
 #      build options are chosen from (runtime.DeviceCaps: SIMT width, sub-groups, local memory,
 #      native float atomics);
 #   4. runs the kernel test suite on that device, tools/peak_probe.py, tools/perf_table.py,
-#      tools/bench_render.py and tools/bench_train_step.py there;
+#      tools/bench_render.py and tools/bench_train_step.py --kernels there (each part's kernel time
+#      beside its wall time; on the frames of --scene DIR, else on ../shared's pulling frames when
+#      they are beside the checkout, else on a synthetic 640x512 scene);
 #   5. writes everything to one report file (--out, default gpu_check_<host>_<date>.txt).
 #
 # --dry-run: when no GPU is found (or always, with --dry-run), run every step on whatever device
@@ -23,13 +25,14 @@
 # --setup-only stops after step 3; --quick uses short benchmark settings; NVIDIA_OPENCL_LIB=PATH
 # names the driver library when it is in none of the usual places.
 #
-#   tools/gpu_check.sh [--wheels DIR] [--device SPEC] [--out FILE] [--dry-run] [--quick] [--setup-only]
+#   tools/gpu_check.sh [--wheels DIR] [--device SPEC] [--scene DIR] [--out FILE] [--dry-run] [--quick] [--setup-only]
 set -u
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PY="${PYTHON:-python3}"
 WHEELS="${ENDOWAVE_WHEELS:-}"
 DEVICE="${ENDOWAVE_CL_DEVICE:-}"
 OUT=""
+SCENE=""
 DRY=0
 QUICK=0
 SETUP_ONLY=0
@@ -37,6 +40,7 @@ while [ $# -gt 0 ]; do
     case "$1" in
         --wheels) WHEELS="$2"; shift 2 ;;
         --device) DEVICE="$2"; shift 2 ;;
+        --scene) SCENE="$2"; shift 2 ;;
         --out) OUT="$2"; shift 2 ;;
         --dry-run) DRY=1; shift ;;
         --quick) QUICK=1; shift ;;
@@ -179,7 +183,13 @@ section "4d. tools/bench_render.py"
 run "$PY" "$ROOT/tools/bench_render.py" --runs "$RUNS" --n "$N" --no-reference || FAILED+=("bench_render")
 [ $GPU -eq 1 ] && { run "$PY" "$ROOT/tools/bench_render.py" --runs "$RUNS" --n "$N" --no-reference --adjoint-mode deterministic || FAILED+=("bench_render deterministic"); }
 section "4e. tools/bench_train_step.py"
-run "$PY" "$ROOT/tools/bench_train_step.py" --runs "$STEPS" --warmup 2 --gaussians "$N" || FAILED+=("bench_train_step")
+SCENE_ARGS=()
+if [ -n "$SCENE" ]; then
+    if [ -f "$SCENE/poses_bounds.npy" ]; then SCENE_ARGS=(--scene "$SCENE")
+    else log "--scene $SCENE: no poses_bounds.npy there; bench_train_step uses its default scene"; fi
+fi
+run "$PY" "$ROOT/tools/bench_train_step.py" --kernels --runs "$STEPS" --warmup 2 --gaussians "$N" ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
+    || FAILED+=("bench_train_step")
 
 section "done"
 if [ ${#FAILED[@]} -eq 0 ]; then

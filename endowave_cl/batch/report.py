@@ -3,8 +3,8 @@ mean over the scenes that finished, read from the run folders' own files (eval.j
 train_log.json, RUN/batch/ records), so a re-run that does no work writes the same report.
 
 Columns: PSNR in both forms (whole image of masked images; tissue pixels only), SSIM, LPIPS-Alex,
-the same four for the two interpolation baselines of ``endowave-cl eval`` (neighbour mean, DIS flow
-interpolation) and the model's margin over the better one, Gaussians, training steps and seconds,
+the same four for the interpolation baselines of ``endowave-cl eval`` (neighbour mean, DIS flow
+interpolation with bilinear and with bicubic warps) and the model's margin over the best one, Gaussians, training steps and seconds,
 the device, the render FPS, the training attempts, and the error of a scene that failed.
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from ..atomic import write_bytes_atomic, write_json_atomic
 from . import tasks as T
 
 METRICS = ("psnr", "psnr_masked", "ssim", "lpips")
-BASELINES = ("mean", "dis")        # endowave_cl.baselines.NAMES
+BASELINES = ("mean", "dis", "dis_cubic")   # endowave_cl.baselines.NAMES
 # numeric columns, in order; the mean row averages them
 NUMERIC = (list(METRICS) + [f"{b}_{k}" for b in BASELINES for k in METRICS]
            + ["margin_psnr", "margin_psnr_masked", "margin_ssim", "margin_lpips",

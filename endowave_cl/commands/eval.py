@@ -1,8 +1,8 @@
 """Evaluate a trained run on its test frames: PSNR (masked form and whole-image form on masked
 images), SSIM, LPIPS-Alex (with the [metrics] extra; else n/a) and rendering FPS (render alone,
-after warm-up), beside two baselines scored the same way on the same frames: the mean of the
-neighbouring training frames and a DIS optical-flow interpolation between them, with the model's
-margin over the better one.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
+after warm-up), beside three baselines scored the same way on the same frames: the mean of the
+neighbouring training frames and a DIS optical-flow interpolation between them with bilinear and
+with bicubic warps, with the model's margin over the best one.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
 end-point error of the flow the model renders, beside DIS's on the same pixels.
 
 Writes RUN/eval.json (every figure, per frame too), RUN/eval_per_frame.png (PSNR of each test
@@ -21,7 +21,7 @@ def add_arguments(p) -> None:
     p.add_argument("--fps-runs", type=int, default=10,
                    help="timed renders for the FPS figure, >= 0 (default 10; 0: skip, fps is null in eval.json)")
     p.add_argument("--no-baselines", action="store_true",
-                   help="skip the neighbour-mean and DIS-interpolation baselines")
+                   help="skip the neighbour-mean and DIS-interpolation baselines (bilinear and bicubic warps)")
 
 
 def _lp(v) -> str:
