@@ -465,7 +465,8 @@ def _between_two_flow(scene, rt, tmp_path):
         rng = np.random.default_rng(3)
         pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        want, other = (between_target(scene, pair, s, two_flow=f)[0] for f in (two_flow, not two_flow))
+        want, other = (between_target(scene, pair, s, two_flow=f, sampler=tr.cfg.between_sampler)[0]
+                       for f in (two_flow, not two_flow))
         np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
 

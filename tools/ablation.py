@@ -5,10 +5,11 @@ Trains the defaults ("full") and the same run with one loss removed (flow, wavel
 without the steps between training frames (no_between: between_prob 0), with the in-between
 steps kept until the end instead of fading out after densify_until (no_between_fade), without
 the late learning-rate decay (no_lr_anneal; both schedules start at densify_until: with fewer
---iterations than that, give --set densify_until=N below it), or with the optional
+--iterations than that, give --set densify_until=N below it), with the in-between target's
+warps sampled bilinearly instead of bicubically (bilinear_between), or with the optional
 per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one scene, for each seed;
 evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the neighbour-mean and
-DIS-interpolation baselines, the rendered flow's EPE where the scene has gt_flow/,
+DIS-interpolation baselines (bilinear and bicubic warps), the rendered flow's EPE where the scene has gt_flow/,
 the depth error where it has depth) and prints one row per variant with the mean and spread over
 the seeds.  Writes ablation.json and ablation.md into --out.
 
@@ -31,7 +32,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
             "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"},
             "plain_adam": {"adam_skip_culled": "false"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"},
-            "no_between_fade": {"between_anneal_final": "1"}, "no_lr_anneal": {"lr_anneal_final": "1"}}
+            "no_between_fade": {"between_anneal_final": "1"}, "no_lr_anneal": {"lr_anneal_final": "1"},
+            "bilinear_between": {"between_sampler": "linear"}}
 
 
 def depth_error(rt, params, scene) -> float:

@@ -8,8 +8,10 @@ time fraction s between them can be predicted, as a flow interpolator does:
 
     W0(p) = I_k(p - s F_kk'(p)),  W1(p) = I_k'(p - (1 - s) F_k'k(p)),  target = (1 - s) W0 + s W1
 
-(``baselines.warp_backward``, the same warp the DIS baseline uses).  Every pixel is supervised,
-also where the flow failed its forward-backward check: there the target degrades towards a blend of
+(the DIS baseline's warp, ``baselines.dis_interpolations``; the frames are sampled between
+pixels as ``between_sampler`` says: bicubically by default, since bilinear sampling at the
+half-pixel offsets of a midway warp averages neighbouring pixels and teaches a blurred frame).
+Every pixel is supervised, also where the flow failed its forward-backward check: there the target degrades towards a blend of
 the two frames, which still bounds what the model may show in between (supervising only the
 trusted pixels measured 0.25 dB lower on the pulling frames, docs/QUALITY.md).  With tool masks,
 only pixels that show tissue in both warped frames are supervised.  The step uses the colour

@@ -57,9 +57,10 @@ class TrainConfig:
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow
-    between_sampler: str = "linear" # how the in-between target samples the two frames between
-                                    # pixels (baselines.py SAMPLERS): "linear" (bilinear, the DIS
-                                    # baseline's warp) or "cubic" (bicubic: blurs less)
+    between_sampler: str = "cubic"  # how the in-between target samples the two frames between
+                                    # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
+                                    # (bilinear, which at half-pixel offsets averages two pixels
+                                    # and teaches a blurred frame; docs/QUALITY.md finding 10)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
