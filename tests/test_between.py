@@ -179,3 +179,68 @@ def test_between_target_sampler():
             np.testing.assert_allclose(cub[inner], scene.frames[1].image[inner], atol=1e-5)
         else:
             assert np.abs(cub - lin)[inner].max() > 1e-3
+
+
+def _fused_ref(warps, s, valid, radius, tau):
+    """fused_interpolation computed pixel by pixel (box mean with the border reflected as
+    cv2.blur's default, BORDER_REFLECT_101 = numpy's "reflect")."""
+    K = len(warps)
+    H, W = warps[0][0].shape[:2]
+    err = np.zeros((K, H, W))
+    for k, (w0, w1) in enumerate(warps):
+        d = np.pad(np.abs(w0.astype(np.float64) - w1).sum(-1), radius, mode="reflect")
+        for y in range(H):
+            for x in range(W):
+                err[k, y, x] = d[y:y + 2 * radius + 1, x:x + 2 * radius + 1].mean()
+    image = np.zeros((H, W, 3))
+    weight = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            use = [k for k in range(K) if valid[k][y, x] > 0] or list(range(K))
+            weight[y, x] = float(any(valid[k][y, x] > 0 for k in range(K)))
+            best = min(err[k, y, x] for k in use)
+            ws = {k: np.exp(-(err[k, y, x] - best) / tau) for k in use}
+            total = sum(ws.values())
+            for k, wk in ws.items():
+                image[y, x] += wk / total * ((1 - s) * warps[k][0][y, x] + s * warps[k][1][y, x])
+    return image, weight
+
+
+def test_fused_interpolation_against_reference():
+    from endowave_cl.train.between import FUSE_RADIUS, FUSE_TAU, fused_interpolation
+    rng = np.random.default_rng(5)
+    H, W, K, s = 12, 15, 3, 0.3
+    base = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    # hypotheses whose two warps disagree by different amounts in different places
+    warps = [(base, np.clip(base + rng.normal(0, sd, (H, W, 3)), 0, 1).astype(np.float32))
+             for sd in (0.01, 0.03, 0.1)]
+    valid = [np.ones((H, W), np.float32) for _ in range(K)]
+    valid[0][:4] = 0.0                      # the best hypothesis unusable in the top rows
+    for v in valid:
+        v[5, 7] = 0.0                       # and no hypothesis at one pixel
+    image, weight = fused_interpolation(warps, s, valid)
+    ref_image, ref_weight = _fused_ref(warps, s, valid, FUSE_RADIUS, FUSE_TAU)
+    np.testing.assert_allclose(image, ref_image, atol=1e-5)
+    np.testing.assert_array_equal(weight, ref_weight)
+    assert weight[5, 7] == 0.0 and weight.sum() == H * W - 1
+
+
+def test_fused_interpolation_prefers_the_hypothesis_whose_warps_agree():
+    # two hypotheses of a frame half-way between two frames of a translating texture: the right
+    # flow and a flow that is 3 px off.  Fused, the result is the right one's almost everywhere;
+    # two copies of one hypothesis fuse to that hypothesis exactly.
+    from endowave_cl.data.flow import FlowPair
+    from endowave_cl.train.between import between_target
+    scene, pair, _ = _scene_and_pair(shift=(2.0, -1.0), H=48, W=64)
+    wrong = FlowPair(0, 2, pair.flow + np.float32([3.0, 0.0]), pair.valid, pair.flow_bw - np.float32([3.0, 0.0]), pair.valid_bw)
+    inner = (slice(8, -8), slice(8, -8))
+    right, _, _ = between_target(scene, pair, 0.5)
+    bad, _, _ = between_target(scene, wrong, 0.5)
+    fused, weight, _ = between_target(scene, wrong, 0.5, extra=[pair])
+    truth = scene.frames[1].image
+    err = lambda im: np.abs(im - truth)[inner].mean()
+    assert err(bad) > 5 * err(right)
+    assert err(fused) < 1.5 * err(right) + 1e-4
+    twice, w2, _ = between_target(scene, pair, 0.5, extra=[pair])
+    np.testing.assert_allclose(twice, right, atol=1e-6)
+    assert weight.min() == 1.0 and w2.min() == 1.0

@@ -486,6 +486,29 @@ def _between_sampler(scene, rt, tmp_path):
         assert not np.allclose(dev.image.get(), not_want, atol=1e-4)
 
 
+def _between_flows(scene, rt, tmp_path):
+    """between_flows: the drawn in-between target fuses the listed estimators' flows of the pair
+    with flow_method's; unknown methods are refused by name."""
+    from endowave_cl.data.flow import flow_for_scene
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.between import between_target
+    from endowave_cl.train.config import TrainConfig, validate_config
+    tr = _trainer(scene, rt, tmp_path / "fused", iterations=0, between_prob=1.0,
+                  between_flows="farneback, dis")          # flow_method (dis) itself is not repeated
+    assert len(tr._between.extra_flows) == 1
+    _, _, dev = tr._between.draw(np.random.default_rng(3))
+    rng = np.random.default_rng(3)
+    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+    s = float(rng.uniform(0.0, 1.0))
+    other = dict(flow_for_scene(scene, method="farneback", progress=False))[pair.src]
+    want = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, extra=[other])[0]
+    alone = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)[0]
+    np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+    assert not np.allclose(dev.image.get(), alone, atol=1e-4)
+    with pytest.raises(EndowaveError, match="between_flows"):
+        validate_config(TrainConfig(between_flows="dis,raft"), "cfg.toml")
+
+
 CHECKS = {
     "iterations": _loop_effect("iterations", 4, _iterations),
     "minutes": _minutes,
@@ -536,6 +559,7 @@ CHECKS = {
     "between_anneal_final": _between_anneal_final,
     "between_two_flow": _between_two_flow,
     "between_sampler": _between_sampler,
+    "between_flows": _between_flows,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -64,7 +64,7 @@ def test_dis_end_point_error_against_synthetic_truth(demo, tmp_path):
     assert np.mean(frac) > 0.85       # the mask keeps most tissue
 
 
-@pytest.mark.parametrize("method", ["deepflow", "tvl1"])
+@pytest.mark.parametrize("method", ["dis_fine", "farneback", "deepflow", "tvl1"])
 def test_other_methods_are_accurate_too(small, method):
     scene = load_scene(small)
     f0, f1 = scene.frames[2], scene.frames[3]

@@ -41,7 +41,9 @@ def main(argv=None) -> int:
     sc = run.scene
     rt = get_runtime()
     params = upload(rt, run.gaussians)
+    from endowave_cl.train.config import between_flow_methods
     pairs = {p.src: p for p in dict(flow_for_scene(sc, method=run.cfg.flow_method, progress=False)).values()}
+    others = [dict(flow_for_scene(sc, method=m, progress=False)) for m in between_flow_methods(run.cfg)]
     print(f"{a.run}: step {run.step}, {len(run.gaussians)} Gaussians; load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"{'frame':>5} {'model':>7} {'DIS':>7} {'target':>7} {'model~DIS':>10} {'model~target':>13}  (dB)")
@@ -52,7 +54,8 @@ def main(argv=None) -> int:
         model = render(rt, params, f.camera, f.time).host()["image"]
         dis = baseline_images(sc, k)["dis"]
         pair = pairs.get(i0)
-        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler)[0]
+        extra = [o[i0] for o in others if i0 in o]
+        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler, extra)[0]
                   if pair is not None and pair.dst == i1 else None)
         r = [psnr(model, f.image), psnr(dis, f.image),
              np.nan if target is None else psnr(target, f.image),

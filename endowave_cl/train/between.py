@@ -17,14 +17,53 @@ trusted pixels measured 0.25 dB lower on the pulling frames, docs/QUALITY.md).  
 only pixels that show tissue in both warped frames are supervised.  The step uses the colour
 losses (L1, D-SSIM, wavelet) and no depth or flow term.  Pairs whose two cameras differ are not
 used: an image-space warp predicts nothing for a moving camera.
+
+Several flow estimators (``between_flows``): each estimator's flows give one hypothesis (W0_h,
+W1_h) of the frame at s.  Where a hypothesis's flow is right, its two warps show the same tissue;
+where it is wrong, they disagree.  ``fused_interpolation`` weighs the hypotheses per pixel by that
+disagreement, E_h = box mean over (2 FUSE_RADIUS + 1)^2 pixels of sum_c |W0_h - W1_h|, with
+weights exp(-(E_h - min_h E_h) / FUSE_TAU) normalised over h, and blends their interpolations
+(1 - s) W0_h + s W1_h.  No frame at s is needed: the choice uses only the two training frames.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
+import cv2
 import numpy as np
 
 from ..baselines import sample_displaced, two_flow_displacements
+
+
+# fused_interpolation: half-width (px) of the box over which a hypothesis's two warps are compared,
+# and the disagreement (sum of the three channels' absolute differences, images in [0, 1]) at which
+# a hypothesis's weight falls by a factor e against the best one's
+FUSE_RADIUS = 3
+FUSE_TAU = 0.02
+
+
+def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
+                        valid: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(image [H, W, 3], weight [H, W]) fused from K hypotheses of the frame at fraction s (module
+    docstring).  warps: [(W0, W1)] per hypothesis, frame 0 and frame 1 warped to s ([H, W, 3]
+    each); valid: [H, W] per hypothesis, 0 where it must not be used (tool masks); weight is 1
+    where at least one hypothesis is valid."""
+    size = (2 * FUSE_RADIUS + 1,) * 2
+    channel_sum = np.ones((1, 3), np.float32)          # cv2.transform: [H, W, 3] -> [H, W] sum
+    err = np.stack([cv2.blur(cv2.transform(cv2.absdiff(w0, w1), channel_sum), size)
+                    for w0, w1 in warps])                                               # [K, H, W]
+    any_ok = np.ones(err.shape[1:], bool)
+    if valid is not None:
+        ok = np.stack([np.asarray(v) > 0 for v in valid])
+        any_ok = ok.any(0)                                                              # [H, W]
+        ok |= ~any_ok        # no valid hypothesis: fuse them all (the pixel is not supervised)
+        err[~ok] = np.inf
+    w = np.exp((err.min(0) - err) * np.float32(1.0 / FUSE_TAU))                         # [K, H, W]
+    w /= w.sum(0)
+    image = np.zeros(warps[0][0].shape, np.float32)
+    for wk, (w0, w1) in zip(w, warps):
+        cv2.accumulateProduct(cv2.cvtColor(wk, cv2.COLOR_GRAY2RGB), cv2.addWeighted(w0, 1.0 - s, w1, s, 0.0), image)
+    return image, any_ok.astype(np.float32)
 
 
 def _same_camera(a, b) -> bool:
@@ -38,35 +77,49 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def between_target(scene, pair, s: float, two_flow: bool = False,
-                   sampler: str = "linear") -> Tuple[np.ndarray, np.ndarray, float]:
+def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
+                   extra: Sequence[object] = ()) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
     instead of each frame's own.  sampler: how the frames are sampled between pixels
-    (baselines.SAMPLERS); the masks are always sampled bilinearly."""
+    (baselines.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
+    two frames from other estimators, fused with the pair's own (fused_interpolation)."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    if two_flow:
-        d0, d1 = two_flow_displacements(pair.flow, pair.flow_bw, s)              # [H, W, 2] each
+    warps, valid = [], []
+    for p in (pair, *extra):
+        if two_flow:
+            d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
+        else:
+            d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
+        warps.append((sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler)))
+        ok = np.ones(f0.image.shape[:2], np.float32)
+        for f, d in ((f0, d0), (f1, d1)):
+            if f.mask is not None:
+                ok *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
+        valid.append(ok)
+    if len(warps) == 1:
+        image, weight = ((1.0 - s) * warps[0][0] + s * warps[0][1]).astype(np.float32), valid[0]
     else:
-        d0, d1 = -s * pair.flow, -(1.0 - s) * pair.flow_bw
-    image = ((1.0 - s) * sample_displaced(f0.image, d0, sampler)
-             + s * sample_displaced(f1.image, d1, sampler)).astype(np.float32)
-    weight = np.ones(image.shape[:2], np.float32)
-    for f, d in ((f0, d0), (f1, d1)):
-        if f.mask is not None:
-            weight *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
+        image, weight = fused_interpolation(warps, s, valid)
     t = (1.0 - s) * float(f0.time) + s * float(f1.time)
     return image, weight, t
 
 
 class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
-    uniformly, then s uniformly in (0, 1)."""
+    uniformly, then s uniformly in (0, 1).  extra_flows: {k: FlowPair} of further estimators for
+    the same pairs, fused into every target (between_target's extra)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear"):
+    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
+                 extra_flows: Sequence[Dict[int, object]] = ()):
         self.rt, self.scene, self.two_flow, self.sampler = rt, scene, two_flow, sampler
         self.pairs = usable_pairs(scene, flows)
+        self.extra_flows = list(extra_flows)
+
+    def extra(self, pair) -> List[object]:
+        """The further estimators' FlowPairs of the pair's two frames."""
+        return [f[pair.src] for f in self.extra_flows if pair.src in f and f[pair.src].dst == pair.dst]
 
     def __bool__(self) -> bool:
         return bool(self.pairs)
@@ -75,7 +128,7 @@ class BetweenSampler:
         from .device_losses import prepare_targets
         pair = self.pairs[int(rng.integers(len(self.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler)
+        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair))
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)

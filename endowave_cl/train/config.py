@@ -61,6 +61,11 @@ class TrainConfig:
                                     # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
                                     # and teaches a blurred frame; docs/QUALITY.md finding 10)
+    between_flows: str = ""         # further flow estimators (comma-separated, data/flow.py METHODS)
+                                    # whose interpolations are fused with flow_method's in the
+                                    # in-between target, per pixel by how well each one's two warps
+                                    # agree (train/between.py fused_interpolation); "": flow_method's
+                                    # alone
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
@@ -234,6 +239,15 @@ def _range_text(low, high, low_in, high_in) -> str:
     return f"in {'[' if low_in else '('}{low:g}, {high:g}{']' if high_in else ')'}"
 
 
+def between_flow_methods(cfg: TrainConfig):
+    """The estimators named by between_flows, in order, without flow_method and repeats."""
+    out = []
+    for m in (x.strip() for x in str(cfg.between_flows).split(",")):
+        if m and m != cfg.flow_method and m not in out:
+            out.append(m)
+    return out
+
+
 def validate_config(cfg: TrainConfig, source: str) -> None:
     """Every key in its range; one-line EndowaveError naming the source and the key otherwise."""
     import math
@@ -257,6 +271,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
     from ..data.flow import METHODS
+    for m in between_flow_methods(cfg):
+        if m not in METHODS:
+            raise EndowaveError(f"{source}: key 'between_flows' must list flow methods from "
+                                f"{', '.join(METHODS)} separated by commas, got {cfg.between_flows!r}")
     if cfg.flow_method not in METHODS:
         raise EndowaveError(f"{source}: key 'flow_method' must be one of {', '.join(METHODS)}, "
                             f"got {cfg.flow_method!r}")

@@ -91,7 +91,7 @@ class Trainer:
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
         self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
-                                       cfg.between_two_flow, cfg.between_sampler)
+                                       cfg.between_two_flow, cfg.between_sampler, self._load_between_flows())
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
@@ -132,6 +132,23 @@ class Trainer:
             return {}
         from ..data.flow import flow_for_scene
         return dict(flow_for_scene(self.scene, method=c.flow_method, progress=False))
+
+    def _load_between_flows(self) -> List[Dict[int, object]]:
+        """The between_flows estimators' flows of the training pairs (cached on disk), for the
+        in-between targets; none when the scene brings its own flow (every method reads it)."""
+        from ..data.flow import flow_for_scene
+        from .config import between_flow_methods
+        if self.cfg.between_prob <= 0:
+            return []
+        out = []
+        for m in between_flow_methods(self.cfg):
+            f = flow_for_scene(self.scene, method=m, progress=False)
+            if f.method == "user":
+                return []
+            out.append(dict(f))
+        if out:
+            self.log(f"in-between targets fuse the flows of {', '.join([self.cfg.flow_method] + between_flow_methods(self.cfg))}")
+        return out
 
     def _prepare_targets(self) -> Dict[int, FrameTargets]:
         from .device_losses import prepare_targets
