@@ -3,7 +3,8 @@
 
 Trains the defaults ("full") and the same run with one loss removed (flow, wavelet, depth), or
 without the steps between training frames (no_between: between_prob 0), with the in-between
-steps kept until the end instead of fading out after densify_until (no_between_fade), without
+steps kept at their share until the end instead of fading to half of it after densify_until
+(no_between_fade), without
 the late learning-rate decay (no_lr_anneal; both schedules start at densify_until: with fewer
 --iterations than that, give --set densify_until=N below it), with the in-between target's
 warps sampled bilinearly instead of bicubically (bilinear_between), with the in-between target

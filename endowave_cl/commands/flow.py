@@ -2,7 +2,8 @@
 
 Flow between consecutive training frames, both directions, with a forward-backward consistency
 mask (tool pixels excluded when the scene has masks), computed with OpenCV (DIS by default;
-DeepFlow and TV-L1 are slower and usually more accurate) and cached outside the scene
+DIS fine, Farneback, DeepFlow and TV-L1 are slower; the config key between_flows fuses several
+for the in-between targets) and cached outside the scene
 (--cache-dir, else $ENDOWAVE_CL_CACHE/flow, else ~/.cache/endowave-cl/flow); training reuses the
 cache while the frames are unchanged.  If SCENE/flow/ holds user flow (.npy / .flo, see
 docs/DATA.md), it is checked and used instead.  For a synthetic scene (gt_flow/) the end-point

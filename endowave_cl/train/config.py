@@ -51,9 +51,10 @@ class TrainConfig:
     between_prob: float = 0.5       # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
                                     # (train/between.py); 0: training frames only (docs/QUALITY.md)
-    between_anneal_final: float = 0.0  # between_prob is multiplied by a factor that falls linearly
+    between_anneal_final: float = 0.5  # between_prob is multiplied by a factor that falls linearly
                                     # from 1 at densify_until to this at the last step (0: the run
-                                    # ends on the training frames alone; 1: constant; QUALITY.md)
+                                    # ends on the training frames alone; 1: constant; 0.5: what
+                                    # suits the real and the synthetic scenes, QUALITY.md finding 11)
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow
