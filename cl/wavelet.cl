@@ -29,12 +29,18 @@ inline int reflect_idx(int m, int n) {
     return r < n ? r : period - r;
 }
 
-/* The convolution kernels compute CONV_RUN = 8 consecutive elements of a line per work-item: in
- * the interior (no reflection) each tap is then one 8-wide load (load8, common.h) and multiply-add
- * for all of them, the same operations in the same order as the per-element path, which serves
- * the border elements.  (With one element per work-item PoCL ran a serial chain of scalar
- * multiply-adds.) */
-#define CONV_RUN 8
+/* The convolution kernels compute CONV_RUN consecutive elements of a line per work-item (a build
+ * option, 8 or 16: endowave_cl/wavelet/ops.py conv_run chooses it per device): in the interior (no
+ * reflection) each tap is then one or two 8-wide loads (load8, common.h) and multiply-adds for all
+ * of them, the same operations in the same order as the per-element path, which serves the border
+ * elements.  (With one element per work-item PoCL ran a serial chain of scalar multiply-adds; with
+ * 16 each tap's value feeds two vectors and there are half as many work-items.) */
+#ifndef CONV_RUN
+#define CONV_RUN 16
+#endif
+#if CONV_RUN != 8 && CONV_RUN != 16
+#error "CONV_RUN must be 8 or 16"
+#endif
 
 /* sum_i f[i] src[(i - R) step] for the 8 elements src[0 .. 7]: an interior run of conv_axis
  * (step = -inner) or of conv_axis_bwd (step = +inner), R = flen / 2. */
@@ -44,6 +50,21 @@ inline float8 conv_run8(__global const float *src, __global const float *f, int 
     for (int i = 0; i < flen; ++i)
         acc += f[i] * load8(src + (i - R) * step);
     return acc;
+}
+
+/* The same for the 16 elements src[0 .. 15], as two 8-wide halves sharing each tap's load. */
+inline void conv_run16(__global const float *src, __global const float *f, int flen, int step,
+                       float8 *lo, float8 *hi) {
+    const int R = flen / 2;
+    float8 a = (float8)(0.0f), b = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i) {
+        const float fi = f[i];
+        __global const float *p = src + (i - R) * step;
+        a += fi * load8(p);
+        b += fi * load8(p + 8);
+    }
+    *lo = a;
+    *hi = b;
 }
 
 /* sum_i f[i] line[reflect(x - (i - R)) * inner] (zero_border: the taps outside [0, n) dropped):
@@ -84,7 +105,14 @@ __kernel void conv_axis(__global const float *in, __global float *out,
     /* xi0 / inner >= R and (xi0 + CONV_RUN - 1) / inner < n - R, without the divisions */
     if (xi0 + CONV_RUN <= len && xi0 >= R * inner && xi0 + CONV_RUN - 1 < (n - R) * inner) {
         /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
+#if CONV_RUN == 16
+        float8 lo, hi;
+        conv_run16(in_o + xi0, f, flen, -inner, &lo, &hi);
+        store8(out_o + xi0, lo);
+        store8(out_o + xi0 + 8, hi);
+#else
         store8(out_o + xi0, conv_run8(in_o + xi0, f, flen, -inner));
+#endif
     } else {
         const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
         for (int xi = xi0; xi < end; ++xi) {
@@ -147,9 +175,20 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
     /* yi0 / inner > R and (yi0 + CONV_RUN - 1) / inner < n - 1 - R, without the divisions */
     if (yi0 + CONV_RUN <= len && yi0 >= (R + 1) * inner && yi0 + CONV_RUN - 1 < (n - 1 - R) * inner) {
         /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
+#if CONV_RUN == 16
+        float8 lo, hi;
+        conv_run16(vo + yi0, f, flen, inner, &lo, &hi);
+        if (accumulate) {
+            lo += load8(vi + yi0);
+            hi += load8(vi + yi0 + 8);
+        }
+        store8(vi + yi0, lo);
+        store8(vi + yi0 + 8, hi);
+#else
         float8 acc = conv_run8(vo + yi0, f, flen, inner);
         if (accumulate) acc += load8(vi + yi0);
         store8(vi + yi0, acc);
+#endif
     } else {
         const int end = yi0 + CONV_RUN < len ? yi0 + CONV_RUN : len;
         for (int yi = yi0; yi < end; ++yi) {

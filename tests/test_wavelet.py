@@ -25,16 +25,23 @@ def dot(a, b):
 
 
 # (shape, axis): short axes (n < R, n = 1, 2) exercise the repeated reflection; the longer ones
-# the kernels' 8-element interior runs (CONV_RUN), with line lengths n * inner that are not
-# multiples of 8 (runs that end early) and inner = 1 (a run spans 8 positions of the axis)
+# the kernels' 8- and 16-element interior runs (CONV_RUN), with line lengths n * inner that are not
+# multiples of 8 or 16 (runs that end early) and inner = 1 (a run spans 8 or 16 positions of the axis)
 CONV_CASES = [((5, 7, 3), 1), ((5, 7, 3), 0), ((1, 9, 2), 1), ((3, 2, 1), 1), ((2, 4, 3), 0),
               ((33, 21, 3), 1), ((33, 21, 3), 0), ((17,), 0), ((6, 5, 4, 2), 2),
               ((7, 41, 5), 1), ((45, 13, 3), 0), ((3, 61), 1), ((70,), 0)]
 
 
+@pytest.fixture(params=[ops.CONV_RUN_GPU, ops.CONV_RUN_CPU], ids=lambda r: f"run{r}")
+def conv_run(request, monkeypatch):
+    """Both builds of the convolution kernels (CONV_RUN 8, the GPUs', and 16, the CPUs') on this device."""
+    monkeypatch.setattr(ops, "conv_run", lambda rt: request.param)
+    return request.param
+
+
 @pytest.mark.parametrize("shape,axis", CONV_CASES)
 @pytest.mark.parametrize("flen", [1, 3, 9, 13, 17])
-def test_conv_axis_matches_reference(rt, shape, axis, flen):
+def test_conv_axis_matches_reference(rt, conv_run, shape, axis, flen):
     x = rand(shape, flen)
     f = rand(flen, flen + 1)  # asymmetric: catches a flipped (correlation) kernel
     got = ops.conv_axis(rt, dev(rt, x), f, axis).get()
@@ -43,7 +50,7 @@ def test_conv_axis_matches_reference(rt, shape, axis, flen):
 
 @pytest.mark.parametrize("shape,axis", CONV_CASES)
 @pytest.mark.parametrize("flen", [1, 11, 13])
-def test_conv_axis_zero_border_and_its_adjoint(rt, shape, axis, flen):
+def test_conv_axis_zero_border_and_its_adjoint(rt, conv_run, shape, axis, flen):
     """border="zero": numpy's 'same' convolution per line; adjoint = reversed filter, same border."""
     x, y, f = rand(shape, flen + 2), rand(shape, flen + 3), rand(flen, flen + 4)
     got = ops.conv_axis(rt, dev(rt, x), f, axis, border="zero").get()
@@ -56,7 +63,7 @@ def test_conv_axis_zero_border_and_its_adjoint(rt, shape, axis, flen):
 
 @pytest.mark.parametrize("shape,axis", CONV_CASES)
 @pytest.mark.parametrize("flen", [3, 13, 17])
-def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
+def test_conv_axis_adjoint_dot_product(rt, conv_run, shape, axis, flen):
     x, y, f = rand(shape, 1), rand(shape, 2), rand(flen, 3)
     Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()
     ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get()
@@ -70,7 +77,7 @@ def test_conv_axis_adjoint_dot_product(rt, shape, axis, flen):
 
 
 @pytest.mark.parametrize("axis", [0, 1])
-def test_conv_adjoint_accumulates_over_interior_runs(rt, axis):
+def test_conv_adjoint_accumulates_over_interior_runs(rt, conv_run, axis):
     y, f, base = rand((37, 29, 3), 11), rand(13, 12), rand((37, 29, 3), 13)
     out = dev(rt, base)
     ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True)

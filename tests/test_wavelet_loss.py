@@ -191,11 +191,14 @@ def test_oclgrind_short_axes_reflect_repeatedly(rt):
 
 
 @pytest.mark.oclgrind
-def test_oclgrind_conv_interior_runs(rt):
-    # lines long enough for the 8-element interior runs of conv_axis / conv_axis_bwd (CONV_RUN),
-    # with a line length that is not a multiple of 8, along both image axes, accumulating
+@pytest.mark.parametrize("run", [ops.CONV_RUN_GPU, ops.CONV_RUN_CPU])
+def test_oclgrind_conv_interior_runs(rt, run, monkeypatch):
+    # lines long enough for the 8- and 16-element interior runs of conv_axis / conv_axis_bwd
+    # (CONV_RUN), with a line length that is not a multiple of 8 or 16, along both image axes,
+    # accumulating
+    monkeypatch.setattr(ops, "conv_run", lambda rt: run)
     f = np.random.default_rng(3).standard_normal(13).astype(np.float32)
-    for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0)):
+    for shape, axis in (((3, 37, 3), 1), ((29, 5, 3), 0), ((2, 53, 1), 1)):
         x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
         y = np.random.default_rng(axis + 5).standard_normal(shape).astype(np.float32)
         Ax = ops.conv_axis(rt, dev(rt, x), f, axis).get()

@@ -50,7 +50,15 @@ def _launch(rt, kernel, total: int, *args) -> None:
     rt.launch(kernel, (round_up(max(int(total), 1), GROUP),), None, *args)
 
 
-CONV_RUN = 8          # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN there)
+# consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN in cl/wavelet.cl): 16 on
+# CPUs, where twice the run halves the work-items and each tap feeds two 8-wide vectors
+# (docs/PERFORMANCE.md, sixth pass); 8 on GPUs, the setting measured there
+CONV_RUN_CPU, CONV_RUN_GPU = 16, 8
+
+
+def conv_run(rt) -> int:
+    """Elements per work-item of the convolution kernels on rt's device."""
+    return CONV_RUN_GPU if rt.is_gpu else CONV_RUN_CPU
 RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 
 
@@ -104,9 +112,10 @@ def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
     farr, flen = _filter_array(rt, f)
     outer, n, inner = _dims(x.shape, axis)
     out = _empty(rt, x.shape) if out is None else out
-    _launch_axis(rt, rt.kernel(KFILE, "conv_axis"), n, inner, outer, x.data, out.data, farr.data,
-            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(border == "zero"),
-            run=CONV_RUN)
+    run = conv_run(rt)
+    _launch_axis(rt, rt.kernel(KFILE, "conv_axis", [f"-DCONV_RUN={run}"]), n, inner, outer, x.data, out.data,
+                 farr.data, np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner),
+                 np.int32(border == "zero"), run=run)
     return out
 
 
@@ -120,9 +129,10 @@ def conv_axis_bwd(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] =
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, v_out.shape)
-    _launch_axis(rt, rt.kernel(KFILE, "conv_axis_bwd"), n, inner, outer, v_out.data, out.data, farr.data,
-            np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)),
-            run=CONV_RUN)
+    run = conv_run(rt)
+    _launch_axis(rt, rt.kernel(KFILE, "conv_axis_bwd", [f"-DCONV_RUN={run}"]), n, inner, outer, v_out.data,
+                 out.data, farr.data, np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner),
+                 np.int32(bool(accumulate)), run=run)
     return out
 
 
