@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     from endowave_cl.render import render
     from endowave_cl.run_io import load_run
     from endowave_cl.runtime import get_runtime
-    from endowave_cl.train.between import between_target
+    from endowave_cl.train.between import between_target, extra_pairs
     try:
         run = load_run(a.run)
     except EndowaveError as e:
@@ -54,8 +54,8 @@ def main(argv=None) -> int:
         model = render(rt, params, f.camera, f.time).host()["image"]
         dis = baseline_images(sc, k)["dis"]
         pair = pairs.get(i0)
-        extra = [o[i0] for o in others if i0 in o]
-        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler, extra)[0]
+        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler,
+                                 extra_pairs(others, pair))[0]
                   if pair is not None and pair.dst == i1 else None)
         r = [psnr(model, f.image), psnr(dis, f.image),
              np.nan if target is None else psnr(target, f.image),

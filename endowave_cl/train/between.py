@@ -66,6 +66,11 @@ def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float
     return image, any_ok.astype(np.float32)
 
 
+def extra_pairs(extra_flows: Sequence[Dict[int, object]], pair) -> List[object]:
+    """The FlowPairs of pair's two frames in further estimators' {k: FlowPair} (between_target's extra)."""
+    return [f[pair.src] for f in extra_flows if pair.src in f and f[pair.src].dst == pair.dst]
+
+
 def _same_camera(a, b) -> bool:
     return (a.width == b.width and a.height == b.height
             and np.allclose([a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy])
@@ -119,7 +124,7 @@ class BetweenSampler:
 
     def extra(self, pair) -> List[object]:
         """The further estimators' FlowPairs of the pair's two frames."""
-        return [f[pair.src] for f in self.extra_flows if pair.src in f and f[pair.src].dst == pair.dst]
+        return extra_pairs(self.extra_flows, pair)
 
     def __bool__(self) -> bool:
         return bool(self.pairs)

@@ -54,12 +54,12 @@ def _launch(rt, kernel, total: int, *args) -> None:
 # CPUs, where twice the run halves the work-items and each tap feeds two 8-wide vectors
 # (docs/PERFORMANCE.md, sixth pass); 8 on GPUs, the setting measured there
 CONV_RUN_CPU, CONV_RUN_GPU = 16, 8
+RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 
 
 def conv_run(rt) -> int:
     """Elements per work-item of the convolution kernels on rt's device."""
     return CONV_RUN_GPU if rt.is_gpu else CONV_RUN_CPU
-RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 
 
 def _launch_axis(rt, kernel, n: int, inner: int, outer: int, *args, run: int = 1) -> None:
