@@ -30,7 +30,7 @@ def _one_line_error(r, *words):
 def test_defaults_validate_and_every_numeric_key_has_a_range():
     validate_config(TrainConfig(), "defaults")
     numeric = {k for k, v in TrainConfig().to_dict().items() if type(v) in (int, float)}
-    assert numeric - set(RANGES) == {"sh_degree", "temporal_freqs"}   # those two are fixed values
+    assert numeric - set(RANGES) == {"temporal_freqs"}   # a fixed value
 
 
 @pytest.mark.parametrize("key,value,words", [
@@ -45,7 +45,7 @@ def test_defaults_validate_and_every_numeric_key_has_a_range():
     ("init_points", "-1", "must be at least 0"),
     ("lambda_dssim", "1.5", "must be in [0, 1]"),
     ("opacity_reset_value", "0", "must be in (0, 1)"),
-    ("sh_degree", "2", "must be 3"),
+    ("sh_degree", "4", "must be in [-1, 3]"),
     ("temporal_freqs", "5", "must be 2"),
     ("flow_method", "bogus", "must be one of dis"),
     ("wavelet_q", "0", "must be at least 1"),
@@ -72,7 +72,7 @@ def test_config_path_that_is_a_folder(tmp_path):
     (["--set", "seed=-1"], ["key 'seed'"]),
     (["--set", "log_every=0"], ["key 'log_every'"]),
     (["--set", "lr_scales=nan"], ["key 'lr_scales' is NaN"]),
-    (["--set", "sh_degree=1"], ["key 'sh_degree' must be 3"]),
+    (["--set", "sh_degree=-2"], ["key 'sh_degree' must be in [-1, 3]"]),
 ])
 def test_train_rejects_bad_values_before_touching_the_run_folder(tiny_scene, tmp_path, args, words):
     run = tmp_path / "run"

@@ -186,6 +186,43 @@ def _flow_method(scene, rt, tmp_path, monkeypatch):
     assert seen == ["dis", "tvl1"]
 
 
+def _sh_degree(scene, rt, tmp_path):
+    """-1 (the default): degree 1 where every training frame shares one camera centre (the tiny
+    scene), 3 where the centres differ; 0..3: that degree; a resumed run keeps its checkpoint's."""
+    def degree(tr):
+        return int(round(math.sqrt(tr.params["sh"].shape[2]))) - 1
+    assert scene.one_viewpoint()
+    tr = _trainer(scene, rt, tmp_path / "a")
+    assert degree(tr) == 1 and tr.cfg.sh_degree == 1
+    assert json.loads((tmp_path / "a" / "run" / "config.json").read_text())["sh_degree"] == 1
+    assert degree(_trainer(scene, rt, tmp_path / "b", sh_degree=2)) == 2
+    moved = _moved_camera(scene)
+    assert not moved.one_viewpoint()
+    assert degree(_trainer(moved, rt, tmp_path / "c")) == 3
+    tr = _trainer(scene, rt, tmp_path / "d", sh_degree=0)
+    tr.save()
+    tr._run.lock.release()   # as a finished run leaves its folder
+    from endowave_cl.train.trainer import Trainer
+    again = Trainer(scene, tiny_config(**QUICK), tmp_path / "d" / "run", rt, log=lambda s: None, resume=True)
+    assert degree(again) == 0 and again.cfg.sh_degree == 0
+    with pytest.raises(EndowaveError, match=r"key 'sh_degree' must be in \[-1, 3\]"):
+        load_config(None, {"sh_degree": "4"})
+
+
+def _moved_camera(scene):
+    """The scene with its second training frame's camera moved sideways."""
+    import copy
+    moved = copy.copy(scene)
+    moved.frames = list(scene.frames)
+    k = scene.train_indices[1]
+    f = copy.copy(scene.frames[k])
+    f.camera = copy.copy(f.camera)
+    f.camera.viewmat = f.camera.viewmat.copy()
+    f.camera.viewmat[0, 3] += 0.05
+    moved.frames[k] = f
+    return moved
+
+
 def _fixed(key, default):
     """The model layout is fixed in this version: the trainer builds it from the key, other values
     are refused with a one-line error."""
@@ -523,7 +560,7 @@ CHECKS = {
     "init_velocity": _init_velocity,
     "max_gaussians": _densify_effect(_max_gaussians),
     "flow_method": _flow_method,
-    "sh_degree": _fixed("sh_degree", 3),
+    "sh_degree": _sh_degree,
     "temporal_freqs": _fixed("temporal_freqs", 2),
     "lr_position_init": _lr_position_init,
     "lr_position_final": _lr_position_final,

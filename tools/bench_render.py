@@ -30,8 +30,10 @@ from endowave_cl.runtime import get_runtime  # noqa: E402
 FOCAL = 569.47  # EndoNeRF's focal length at 640x512
 
 
-def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0) -> Gaussians:
-    """Gaussians on a wavy surface 3.5-4.5 units in front of an identity camera, filling the view."""
+def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0, sh_degree: int = 3) -> Gaussians:
+    """Gaussians on a wavy surface 3.5-4.5 units in front of an identity camera, filling the view,
+    with view-dependent colour of degree sh_degree (a fixed camera's training uses 0: sh_degree -1
+    in train/config.py)."""
     rng = np.random.default_rng(seed)
     u = rng.uniform(-0.05 * width, 1.05 * width, n)
     v = rng.uniform(-0.05 * height, 1.05 * height, n)
@@ -43,7 +45,7 @@ def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0
     s_world = sigma_px * z / FOCAL
     scales = np.log(np.stack([s_world * rng.uniform(0.6, 1.4, n), s_world * rng.uniform(0.6, 1.4, n),
                               0.3 * s_world, np.full(n, 0.3)], 1))
-    K = num_sh_bases(3)
+    K = num_sh_bases(sh_degree)
     sh = np.zeros((n, 3, K, 3))
     sh[:, 0, 0, :] = rng.uniform(-1, 1, (n, 3))
     sh[:, :, 1:, :] = 0.05 * rng.standard_normal((n, 3, K - 1, 3))
@@ -80,6 +82,8 @@ def main(argv=None):
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=512)
     ap.add_argument("--sigma-px", type=float, default=2.5, help="mean screen-space std of a Gaussian (pixels)")
+    ap.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3,
+                    help="SH degree of the Gaussians' colour (default 3; training a fixed camera uses 0)")
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--device", default=None)
@@ -91,15 +95,15 @@ def main(argv=None):
     rt = get_runtime(args.device)
     cam = Camera(FOCAL * args.width / 640, FOCAL * args.width / 640, args.width / 2, args.height / 2,
                  args.width, args.height)
-    g = tissue_scene(args.n, args.width, args.height, args.sigma_px)
+    g = tissue_scene(args.n, args.width, args.height, args.sigma_px, sh_degree=args.sh_degree)
     params = upload(rt, g)
     t, t2 = 0.5, 0.55
 
     print(f"device: {rt.describe()}")
     print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load average "
           f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)")
-    print(f"sizes: N={args.n} Gaussians, {args.width}x{args.height}, C=6 channels, median of {args.runs} runs "
-          f"after {args.warmup} warm-up")
+    print(f"sizes: N={args.n} Gaussians (SH degree {args.sh_degree}), {args.width}x{args.height}, C=6 channels, "
+          f"median of {args.runs} runs after {args.warmup} warm-up")
 
     # per-stage (with a sync after each stage)
     stages = {}

@@ -47,6 +47,8 @@ def main(argv=None):
                          "(the training step passes it as factors)")
     ap.add_argument("--adam-skip-culled", action="store_true",
                     help="Adam leaves the step's culled Gaussians alone (config key adam_skip_culled)")
+    ap.add_argument("--sh-degree", type=int, default=None,
+                    help="the config's sh_degree (0..3; default: the config default, resolved for the scene)")
     ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
     ap.add_argument("--kernels", action="store_true",
                     help="also print each part's summed kernel time (OpenCL event profiling of the "
@@ -78,6 +80,8 @@ def main(argv=None):
     cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0,
                       adam_skip_culled=args.adam_skip_culled)
+    if args.sh_degree is not None:
+        cfg.sh_degree = args.sh_degree
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
         if args.checkpoint:

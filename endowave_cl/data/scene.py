@@ -32,6 +32,8 @@ from .llff import HWF_LAYOUTS, intrinsics_from_hwf, llff_to_viewmat, read_poses_
 DEFAULT_DEPTH_PERCENTILES = (3.0, 99.8)
 # Every TEST_EVERY-th frame starting at frame 1 is a test frame: (i - 1) % 8 == 0.
 TEST_EVERY = 8
+# camera centres this close (relative to the far bound) count as one viewpoint (Scene.one_viewpoint)
+VIEWPOINT_TOL = 1e-6
 # A downscaled mask pixel counts as tissue only if all full-size pixels under it were tissue
 # (area-averaged value at least this).
 MASK_KEEP = 0.999
@@ -77,6 +79,13 @@ class Scene:
         effects.append("tool pixels excluded" if self.has_masks else "every pixel supervised")
         split = f"{len(self.train_indices)} train / {len(self.test_indices)} test"
         return f"{', '.join(parts)}: {', '.join(effects)}; {split}"
+
+    def one_viewpoint(self) -> bool:
+        """Whether every training frame's camera centre is the same point (a fixed endoscope), to
+        within VIEWPOINT_TOL of the far bound."""
+        centres = np.stack([self.frames[i].camera.campos.astype(np.float64) for i in self.train_indices] or
+                           [np.zeros(3)])                                                        # [N, 3]
+        return float(np.ptp(centres, axis=0).max()) <= VIEWPOINT_TOL * max(1.0, abs(self.far))
 
 
 def split_indices(n: int, test_every: int = TEST_EVERY):

@@ -22,6 +22,10 @@ _WAVELET = WaveletConfig()   # the wavelet loss's defaults, defined once in wave
 # the demo's tuned 40k cap at 160x128 is 2 per pixel.
 INIT_POINTS_PER_PIXEL = 1.0
 MAX_GAUSSIANS_PER_PIXEL = 2.0
+# what sh_degree = -1 becomes (TrainConfig.resolve_sh_degree): 3DGS's degree where the training
+# cameras move, 1 where every frame is seen from one camera centre (docs/QUALITY.md finding 12)
+SH_DEGREE_MOVING = 3
+SH_DEGREE_ONE_VIEWPOINT = 1
 
 
 @dataclass
@@ -70,7 +74,10 @@ class TrainConfig:
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
-    sh_degree: int = 3
+    sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
+                                    # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
+                                    # 1 when every training frame is seen from one camera centre (a
+                                    # fixed endoscope), else 3 (3DGS)
     temporal_freqs: int = 2
     # -- learning rates (Adam, eps 1e-15; see ops/adam.py) ----------------------------------------
     lr_position_init: float = 1.6e-4   # x scene extent, decays log-linearly ...
@@ -141,6 +148,16 @@ class TrainConfig:
             self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
         if self.init_points <= 0:
             self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
+
+    def resolve_sh_degree(self, one_viewpoint: bool) -> None:
+        """Replace sh_degree = -1 by SH_DEGREE_ONE_VIEWPOINT when every training frame is seen from
+        one camera centre, else by SH_DEGREE_MOVING.  From one centre a Gaussian is seen along a
+        direction that changes only as far as the Gaussian itself moves, a few degrees: degree 1 (a
+        colour that changes linearly with that direction) is all the data can constrain, and
+        degrees 2 and 3 would add 108 of the 144 colour coefficients per Gaussian, and the time to
+        project and update them, without changing the test frames (docs/QUALITY.md finding 12)."""
+        if self.sh_degree < 0:
+            self.sh_degree = SH_DEGREE_ONE_VIEWPOINT if one_viewpoint else SH_DEGREE_MOVING
 
     def wavelet_config(self):
         """The wavelet_* keys as the WaveletConfig the device loss takes."""
@@ -222,15 +239,15 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
-    "lambda_flow_gaussian": _NON_NEGATIVE,
+    "lambda_flow_gaussian": _NON_NEGATIVE, "sh_degree": (-1, 3, True, True),
     # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
     "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,
     "wavelet_weight_lh": _NON_NEGATIVE, "wavelet_weight_hl": _NON_NEGATIVE, "wavelet_weight_hh": _NON_NEGATIVE,
 }
-# keys whose value is fixed in this version: the model layout (gaussians.py SH_DEGREE,
-# TEMPORAL_FREQS) is compiled into the kernels and the initialisation; any other value would be
-# recorded in config.json and silently ignored
-FIXED = {"sh_degree": 3, "temporal_freqs": 2}
+# keys whose value is fixed in this version: the number of TEASH frequencies (gaussians.py
+# TEMPORAL_FREQS) is what the initialisation builds; any other value would be recorded in
+# config.json and silently ignored
+FIXED = {"temporal_freqs": 2}
 INF_ALLOWED = {"flow_huber_delta"}
 
 

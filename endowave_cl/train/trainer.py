@@ -53,6 +53,7 @@ class Trainer:
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
         cfg.resolve_density(scene.width, scene.height)   # per-pixel defaults of init_points, max_gaussians
+        cfg.resolve_sh_degree(scene.one_viewpoint())     # sh_degree -1: 1 for a fixed camera, else 3
         self.run_dir = Path(run_dir)
         # creates and locks the run folder; config.json is written by run.start once the model is ready
         self._run = RunSession(self.run_dir, log, resume)
@@ -74,6 +75,7 @@ class Trainer:
             g = ck["gaussians"]
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
+            self.cfg.sh_degree = g.sh_degree     # the model's layout, whatever the config resolved to
             self.log(f"resuming from {ckpt_path} at step {self.step} ({len(g)} Gaussians)")
         else:
             from .init import init_gaussians
