@@ -31,7 +31,7 @@ SH_DEGREE_ONE_VIEWPOINT = 1
 @dataclass
 class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
-    iterations: int = 6000          # about 15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
+    iterations: int = 6000          # about 10-15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
                                     # 4DGS trains 30000 on a GPU.  --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
                                     # training on this device (train/budget.py); 0: `iterations`
