@@ -30,10 +30,11 @@ from endowave_cl.runtime import get_runtime  # noqa: E402
 FOCAL = 569.47  # EndoNeRF's focal length at 640x512
 
 
-def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0, sh_degree: int = 3) -> Gaussians:
+def tissue_scene(n: int, width: int, height: int, sigma_px: float, seed: int = 0,
+                 sh_degree: int = 3) -> Gaussians:
     """Gaussians on a wavy surface 3.5-4.5 units in front of an identity camera, filling the view,
-    with view-dependent colour of degree sh_degree (a fixed camera's training uses 0: sh_degree -1
-    in train/config.py)."""
+    with view-dependent colour of degree sh_degree (training with a fixed camera uses 1: sh_degree
+    -1 in train/config.py)."""
     rng = np.random.default_rng(seed)
     u = rng.uniform(-0.05 * width, 1.05 * width, n)
     v = rng.uniform(-0.05 * height, 1.05 * height, n)
@@ -83,7 +84,7 @@ def main(argv=None):
     ap.add_argument("--height", type=int, default=512)
     ap.add_argument("--sigma-px", type=float, default=2.5, help="mean screen-space std of a Gaussian (pixels)")
     ap.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3,
-                    help="SH degree of the Gaussians' colour (default 3; training a fixed camera uses 0)")
+                    help="SH degree of the Gaussians' colour (default 3; training with a fixed camera uses 1)")
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--device", default=None)

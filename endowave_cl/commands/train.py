@@ -145,9 +145,11 @@ def run(args) -> int:
     auto_sh = cfg.sh_degree < 0          # resolved by the trainer from the cameras (train/config.py)
     trainer = Trainer(scene, cfg, out, rt, resume=not args.restart)
     plan = f"a {cfg.minutes:g}-minute budget" if cfg.minutes > 0 else f"{cfg.iterations} steps"
+    why = ""   # why -1 became this degree; a resumed run has its checkpoint's degree instead
+    if auto_sh and trainer.step == 0:
+        why = " (one camera centre)" if scene.one_viewpoint() else " (moving cameras)"
     print(f"training {plan}, losses: {', '.join(losses)}; {len(trainer.params['means'])} Gaussians, "
-          f"colour SH degree {cfg.sh_degree}"
-          + (f" ({'one camera centre' if scene.one_viewpoint() else 'moving cameras'})" if auto_sh and trainer.step == 0 else ""))
+          f"colour SH degree {cfg.sh_degree}{why}")
     m = trainer.train(progress=not args.quiet)
     print(f"final test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
           f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s; run saved in {out}")
