@@ -209,6 +209,42 @@ def _sh_degree(scene, rt, tmp_path):
         load_config(None, {"sh_degree": "4"})
 
 
+def test_default_cap_counts_the_gaussians_alive_at_a_time(scene, rt, tmp_path):
+    """max_gaussians = 0: at least MAX_GAUSSIANS_PER_PIXEL per pixel, raised to ALIVE_PER_PIXEL
+    per pixel alive at a time when the initial Gaussians each live a short part of the sequence;
+    a given cap is kept as given; a resumed run keeps the cap it started with."""
+    from endowave_cl.gaussians import covariance_4d, download
+    from endowave_cl.train.config import (ALIVE_PER_PIXEL, MAX_GAUSSIANS_PER_PIXEL,
+                                          MAX_GAUSSIANS_PER_PIXEL_LIMIT)
+    from endowave_cl.train.motion import temporal_coverage
+    from endowave_cl.train.trainer import Trainer
+    W, H = scene.width, scene.height
+    floor = int(MAX_GAUSSIANS_PER_PIXEL * W * H)
+    cfg = TrainConfig()
+    cfg.resolve_density(W, H)
+    assert cfg.max_gaussians == floor
+    cfg.resolve_cap_for_lifetimes(W, H, coverage=1.0)        # alive all along: the floor binds
+    assert cfg.max_gaussians == floor
+    cfg.resolve_cap_for_lifetimes(W, H, coverage=0.05)
+    assert cfg.max_gaussians == int(ALIVE_PER_PIXEL * W * H / 0.05) > floor
+    cfg.resolve_cap_for_lifetimes(W, H, coverage=1e-9)       # bounded for memory
+    assert cfg.max_gaussians == int(MAX_GAUSSIANS_PER_PIXEL_LIMIT * W * H)
+
+    long_lived = _trainer(scene, rt, tmp_path / "a", init_time_scale=0.5)
+    assert long_lived.cfg.max_gaussians == floor
+    short = _trainer(scene, rt, tmp_path / "b", init_time_scale=0.02)
+    g = download(short.params)
+    cover = temporal_coverage(g.means[:, 3], np.sqrt(covariance_4d(g)[:, 3, 3])).mean()
+    assert cover < 0.06
+    assert short.cfg.max_gaussians == int(ALIVE_PER_PIXEL * W * H / cover) > floor
+    assert json.loads((tmp_path / "b" / "run" / "config.json").read_text())["max_gaussians"] == short.cfg.max_gaussians
+    assert _trainer(scene, rt, tmp_path / "c", init_time_scale=0.005, max_gaussians=77).cfg.max_gaussians == 77
+    short.save()
+    short._run.lock.release()   # as a finished run leaves its folder
+    again = Trainer(scene, tiny_config(**QUICK), tmp_path / "b" / "run", rt, log=lambda s: None, resume=True)
+    assert again.cfg.max_gaussians == short.cfg.max_gaussians
+
+
 def _moved_camera(scene):
     """The scene with its second training frame's camera moved sideways."""
     import copy

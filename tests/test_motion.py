@@ -10,7 +10,8 @@ import torch
 
 from endowave_cl.reference.project import condition_at, covariance4d, rotation4d
 from endowave_cl.train.motion import (frame_velocities, linear_lifetime, gaussian_from_covariance, motion_of,
-                                      moving_covariance, rotation_to_quats, spatial_size)
+                                      moving_covariance, rotation_to_quats, spatial_size,
+                                      temporal_coverage)
 
 
 def test_rotation_to_quats_recovers_the_pair():
@@ -180,3 +181,17 @@ def test_frame_velocities_acceleration():
     pairs[1] = _Pair(1, 2, 2 * pairs[1].flow, pairs[1].valid)      # twice as fast after frame 1
     a1 = frame_velocities(frames, [0, 1, 2], pairs, depth_prior=z)[1][2]
     np.testing.assert_allclose(a1[known], np.linalg.norm(want) / 0.25, rtol=1e-5)
+
+
+def test_temporal_coverage_is_the_integral_of_the_marginal_over_the_sequence():
+    mu = np.array([0.5, 0.0, 1.0, 0.3, 0.5, -0.4, 0.9])
+    st = np.array([0.01, 0.05, 0.2, 0.1, 5.0, 0.1, 1e-4])
+    t = np.linspace(0.0, 1.0, 200001)
+    marg = np.exp(-0.5 * ((t[None, :] - mu[:, None]) / st[:, None]) ** 2)
+    want = np.trapezoid(marg, t, axis=1) if hasattr(np, "trapezoid") else np.trapz(marg, t, axis=1)
+    got = temporal_coverage(mu, st)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+    assert got[0] == pytest.approx(np.sqrt(2 * np.pi) * 0.01, rel=1e-9)   # well inside: sqrt(2 pi) sigma
+    assert got[1] == pytest.approx(np.sqrt(2 * np.pi) * 0.05 / 2, rel=1e-9)   # centred on an end: half
+    assert got[4] == pytest.approx(1.0, abs=0.01)                           # lives all along: 1
+    assert got[5] < 1e-4                                                    # dead before the first frame

@@ -63,6 +63,7 @@ def test_missing_scene_and_corrupt_frame_errors_keep_earlier_run(rt, tiny_scene,
              "--set", "checkpoint_every=5", "--set", "init_points=500")
     assert r.returncode == 0, r.stderr
     assert "colour SH degree 1 (one camera centre)" in r.stdout, r.stdout   # sh_degree -1, a fixed camera
+    assert "Gaussians (density control up to " in r.stdout, r.stdout
     before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
     assert any(n.startswith("checkpoint_") for n in before)
 

@@ -22,6 +22,15 @@ _WAVELET = WaveletConfig()   # the wavelet loss's defaults, defined once in wave
 # the demo's tuned 40k cap at 160x128 is 2 per pixel.
 INIT_POINTS_PER_PIXEL = 1.0
 MAX_GAUSSIANS_PER_PIXEL = 2.0
+# What fits a frame, and what a step costs, is the Gaussians alive at its time, not all of them: a
+# 4D Gaussian lives for part of the sequence (its temporal coverage, motion.temporal_coverage).
+# With the same motion, a sequence twice as long has half as many alive at any time under the same
+# cap.  So the default cap is also at least this many Gaussians alive per pixel at a time, given
+# the initial Gaussians' mean coverage (TrainConfig.resolve_cap_for_lifetimes; docs/QUALITY.md
+# finding 13): longer sequences, and faster or less regular motion, get a higher cap.
+ALIVE_PER_PIXEL = 0.25
+MAX_GAUSSIANS_PER_PIXEL_LIMIT = 16.0   # the raised cap's bound: memory (about 1 KB per Gaussian with
+                                       # its gradient and Adam's moments) for very long sequences
 # what sh_degree = -1 becomes (TrainConfig.resolve_sh_degree): 3DGS's degree where the training
 # cameras move, 1 where every frame is seen from one camera centre (docs/QUALITY.md finding 12)
 SH_DEGREE_MOVING = 3
@@ -72,7 +81,9 @@ class TrainConfig:
                                     # agree (train/between.py fused_interpolation); "": flow_method's
                                     # alone
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
-                                    # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame
+                                    # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
+                                    # the initial Gaussians live short parts of a long sequence
+                                    # (ALIVE_PER_PIXEL alive per pixel at a time)
     flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
     sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
                                     # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
@@ -148,6 +159,14 @@ class TrainConfig:
             self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
         if self.init_points <= 0:
             self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
+
+    def resolve_cap_for_lifetimes(self, width: int, height: int, coverage: float) -> None:
+        """Raise the per-pixel default cap (max_gaussians = 0 given, resolve_density applied) to
+        ALIVE_PER_PIXEL Gaussians per pixel alive at a time, for initial Gaussians that are each
+        alive for the fraction ``coverage`` (their mean) of the sequence."""
+        alive_cap = ALIVE_PER_PIXEL * width * height / max(float(coverage), 1e-6)
+        alive_cap = int(min(alive_cap, MAX_GAUSSIANS_PER_PIXEL_LIMIT * width * height))
+        self.max_gaussians = max(self.max_gaussians, alive_cap)
 
     def resolve_sh_degree(self, one_viewpoint: bool) -> None:
         """Replace sh_degree = -1 by SH_DEGREE_ONE_VIEWPOINT when every training frame is seen from

@@ -19,6 +19,7 @@ quaternion pair of reference/project.py's convention (R = M_left(q_l) M_right(q_
 """
 from __future__ import annotations
 
+import math
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -91,6 +92,16 @@ def motion_of(sigma: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     v = sigma[:, :3, 3] / stt[:, None]
     cond = sigma[:, :3, :3] - stt[:, None, None] * v[:, :, None] * v[:, None, :]
     return cond, np.sqrt(stt), v
+
+
+def temporal_coverage(mu_t: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
+    """[N] the integral over the sequence's time [0, 1] of each Gaussian's temporal marginal
+    exp(-(t - mu_t)^2 / (2 sigma_t^2)): the fraction of the sequence it is alive for
+    (sqrt(2 pi) sigma_t for a short-lived one well inside the sequence, at most 1)."""
+    mu = np.asarray(mu_t, np.float64)
+    s = np.maximum(np.asarray(sigma_t, np.float64), 1e-12) * math.sqrt(2.0)
+    erf = np.frompyfunc(math.erf, 1, 1)
+    return (math.sqrt(math.pi) / 2.0 * s * (erf((1.0 - mu) / s) - erf(-mu / s))).astype(np.float64)
 
 
 def spatial_size(sigma: np.ndarray) -> np.ndarray:

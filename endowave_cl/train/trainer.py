@@ -52,6 +52,7 @@ class Trainer:
         from .run_folder import RunSession
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
+        self._auto_cap = cfg.max_gaussians <= 0           # raised for short lives once the model exists
         cfg.resolve_density(scene.width, scene.height)   # per-pixel defaults of init_points, max_gaussians
         cfg.resolve_sh_degree(scene.one_viewpoint())     # sh_degree -1: 1 for a fixed camera, else 3
         self.run_dir = Path(run_dir)
@@ -76,6 +77,8 @@ class Trainer:
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
             self.cfg.sh_degree = g.sh_degree     # the model's layout, whatever the config resolved to
+            if self._auto_cap:                   # the cap the run started with
+                self.cfg.max_gaussians = int(ck["config"].get("max_gaussians", self.cfg.max_gaussians))
             self.log(f"resuming from {ckpt_path} at step {self.step} ({len(g)} Gaussians)")
         else:
             from .init import init_gaussians
@@ -84,6 +87,12 @@ class Trainer:
                                nt=cfg.temporal_freqs, time_scale=cfg.init_time_scale,
                                flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
+            if self._auto_cap and len(g):
+                from ..gaussians import covariance_4d
+                from .motion import temporal_coverage
+                sigma_t = np.sqrt(np.maximum(covariance_4d(g)[:, 3, 3], 0.0))
+                cfg.resolve_cap_for_lifetimes(scene.width, scene.height,
+                                              float(temporal_coverage(g.means[:, 3], sigma_t).mean()))
             ck = None
         self.params = upload(rt, g)
         self.adam = DeviceAdam(rt, self.params, self.group_lrs(self.step))
