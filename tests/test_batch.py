@@ -79,7 +79,7 @@ def two_scene_dirs(tmp_path):
     ('root = "o"\nscenes = ["data/*"]\nstages = ["train", "evaluate"]', "unknown stage 'evaluate'"),
     ('root = "o"\nscenes = ["data/*"]\nstages = []', "key 'stages'"),
     ('root = "o"\nscenes = ["data/*"]\n[settings]\nitertions = 3', "[settings]: unknown key 'itertions'"),
-    ('root = "o"\nscenes = ["data/*"]\n[settings]\niterations = 0', "key 'iterations' must be at least 1"),
+    ('root = "o"\nscenes = ["data/*"]\n[settings]\niterations = -1', "key 'iterations' must be at least 0"),
     ('root = "o"\nscenes = ["data/*"]\n[overrides.c]\niterations = 3', "key 'overrides.c' matches no scene"),
     ('root = "o"\nscenes = ["data/*"]\n[overrides.a]\nlr_opacity = "x"', "key 'lr_opacity' expects float"),
     ('root = "o"\nscenes = ["data/*"]\n[resources]\ncpus = "2"', "key 'resources.cpus' expects number"),

@@ -28,7 +28,7 @@ def test_load_config_toml_and_overrides(tmp_path):
 
 @pytest.mark.parametrize("text,key", [("itrations = 3\n", "itrations"), ("iterations = 2.5\n", "iterations"),
                                       ("use_depth = 1\n", "use_depth"), ("lr_opacity = 'a'\n", "lr_opacity"),
-                                      ("iterations = 0\n", "iterations"),
+                                      ("iterations = -1\n", "iterations"),
                                       ("flow_method = 3\n", "flow_method")])
 def test_load_config_bad_keys_name_file_and_key(tmp_path, text, key):
     p = tmp_path / "bad.toml"

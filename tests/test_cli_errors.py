@@ -39,7 +39,7 @@ def test_defaults_validate_and_every_numeric_key_has_a_range():
     ("lr_position_init", "inf", "must be finite"),
     ("seed", "-1", "must be in [0"),
     ("log_every", "0", "must be at least 1"),
-    ("iterations", "0", "must be at least 1"),
+    ("iterations", "-1", "must be at least 0"),
     ("downscale", "inf", "must be finite"),
     ("downscale", "0.5", "must be at least 1"),
     ("init_points", "-1", "must be at least 0"),

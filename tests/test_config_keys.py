@@ -245,6 +245,34 @@ def test_default_cap_counts_the_gaussians_alive_at_a_time(scene, rt, tmp_path):
     assert again.cfg.max_gaussians == short.cfg.max_gaussians
 
 
+def test_default_iterations_visit_every_training_frame_alike(scene, rt, tmp_path):
+    """iterations = 0: STEPS_PER_TRAINING_FRAME per training frame, at least BASE_ITERATIONS, with
+    the schedule keys stretched by the same factor; a given step count keeps the keys as given."""
+    from endowave_cl.train.config import BASE_ITERATIONS, SCALED_FIELDS, STEPS_PER_TRAINING_FRAME
+    short = TrainConfig()
+    short.resolve_iterations(BASE_ITERATIONS // STEPS_PER_TRAINING_FRAME)   # a short sequence: the floor
+    assert short.iterations == BASE_ITERATIONS
+    assert all(getattr(short, f) == getattr(TrainConfig(), f) for f in SCALED_FIELDS)
+    n = 3 * BASE_ITERATIONS // STEPS_PER_TRAINING_FRAME                     # three times as many frames
+    long = TrainConfig()
+    long.resolve_iterations(n)
+    assert long.iterations == STEPS_PER_TRAINING_FRAME * n > BASE_ITERATIONS
+    r = long.iterations / BASE_ITERATIONS
+    for f in ("densify_from", "densify_until", "opacity_reset_every"):
+        assert getattr(long, f) == round(getattr(TrainConfig(), f) * r), f
+    assert long.densify_until < long.iterations and long.opacity_reset_every >= long.densify_until  # no reset
+    assert long.lr_position_steps == 0                                      # still "over all iterations"
+    given = TrainConfig(iterations=123)
+    given.resolve_iterations(n)
+    assert given.iterations == 123 and given.densify_until == TrainConfig().densify_until
+
+    tr = _trainer(scene, rt, tmp_path / "a", iterations=0)
+    want = max(BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME * len(scene.train_indices))
+    assert tr.auto_iterations and tr.cfg.iterations == want
+    assert json.loads((tmp_path / "a" / "run" / "config.json").read_text())["iterations"] == want
+    assert not _trainer(scene, rt, tmp_path / "b", iterations=7).auto_iterations
+
+
 def _moved_camera(scene):
     """The scene with its second training frame's camera moved sideways."""
     import copy
@@ -274,6 +302,7 @@ def _fixed(key, default):
 # ------------------------------------------------------------------ learning rates
 def _lrs(cfg, step=0, extent=2.0):
     from endowave_cl.train.trainer import Trainer
+    cfg.resolve_iterations(55)   # as the trainer does before its first step (55 training frames)
     return Trainer.group_lrs(SimpleNamespace(cfg=cfg, extent=extent), step)
 
 

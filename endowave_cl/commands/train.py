@@ -26,7 +26,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
     p.add_argument("--demo", action="store_true", help="train on the built-in synthetic scene (generated into RUN/demo_scene)")
     p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
-    p.add_argument("--iterations", type=int, help="number of training steps")
+    p.add_argument("--iterations", type=int, help="number of training steps (default: 109 per training frame, at least "
+                                                      "6000, with the densification schedule stretched alike)")
     p.add_argument("--minutes", type=float,
                    help="time budget: plan the steps, densification and learning-rate decay to end "
                         "training within this many minutes on this device (prints the plan)")
@@ -144,7 +145,13 @@ def run(args) -> int:
                                          ("wavelet", cfg.use_wavelet)) if on]
     auto_sh = cfg.sh_degree < 0          # resolved by the trainer from the cameras (train/config.py)
     trainer = Trainer(scene, cfg, out, rt, resume=not args.restart)
-    plan = f"a {cfg.minutes:g}-minute budget" if cfg.minutes > 0 else f"{cfg.iterations} steps"
+    if cfg.minutes > 0:
+        plan = f"a {cfg.minutes:g}-minute budget"
+    elif trainer.auto_iterations:
+        plan = (f"{cfg.iterations} steps (about {cfg.iterations // len(scene.train_indices)} per training "
+                f"frame; --minutes plans from a time budget)")
+    else:
+        plan = f"{cfg.iterations} steps"
     why = ""   # why -1 became this degree; a resumed run has its checkpoint's degree instead
     if auto_sh and trainer.step == 0:
         why = " (one camera centre)" if scene.one_viewpoint() else " (moving cameras)"

@@ -13,8 +13,7 @@ import time
 from dataclasses import dataclass
 from typing import Dict, Optional
 
-# schedule fields that are step counts and scale with the planned length
-SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps")
+from .config import SCALED_FIELDS   # schedule fields that are step counts: they scale with the plan
 WARMUP_STEPS = 5          # first steps build kernels: not timed
 MIN_TIMED_STEPS = 20      # steps timed before the first plan
 RATE_WINDOW = 100         # steps over which the current rate is measured

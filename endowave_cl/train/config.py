@@ -35,13 +35,23 @@ MAX_GAUSSIANS_PER_PIXEL_LIMIT = 16.0   # the raised cap's bound: memory (about 1
 # cameras move, 1 where every frame is seen from one camera centre (docs/QUALITY.md finding 12)
 SH_DEGREE_MOVING = 3
 SH_DEGREE_ONE_VIEWPOINT = 1
+# The default schedule (iterations = 0) gives every training frame about STEPS_PER_TRAINING_FRAME
+# visits, and is never shorter than BASE_ITERATIONS: a longer sequence needs as many visits per frame
+# as a short one to fit them (docs/QUALITY.md finding 14).  The schedule keys (SCALED_FIELDS) are
+# step numbers of the BASE_ITERATIONS-step schedule and stretch with it, as --minutes stretches them.
+BASE_ITERATIONS = 6000
+STEPS_PER_TRAINING_FRAME = 109   # 6000 steps over the 55 training frames of the pulling sequence
+SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps")
 
 
 @dataclass
 class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
-    iterations: int = 6000          # about 10-15 minutes at 320x256 on 2 CPU cores (docs/QUALITY.md);
-                                    # 4DGS trains 30000 on a GPU.  --minutes plans it from a time budget
+    iterations: int = 0             # 0: STEPS_PER_TRAINING_FRAME per training frame, at least
+                                    # BASE_ITERATIONS (6000: about 10-15 minutes for the 63 pulling
+                                    # frames at 320x256 on 2 CPU cores, docs/QUALITY.md), with the
+                                    # schedule keys stretched alike; 4DGS trains 30000 on a GPU.
+                                    # --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
                                     # training on this device (train/budget.py); 0: `iterations`
     seed: int = 0
@@ -116,7 +126,7 @@ class TrainConfig:
     densify_every: int = 100
     densify_until: int = 3000           # half of training, as 3DGS (15000 of 30000); like every
                                         # schedule key a step number: --iterations does not scale
-                                        # them (--minutes does)
+                                        # them (--minutes and iterations = 0 do)
     densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
@@ -151,6 +161,19 @@ class TrainConfig:
     wavelet_weight_lh: float = _WAVELET.weights[1]  # error, the same at every level
     wavelet_weight_hl: float = _WAVELET.weights[2]
     wavelet_weight_hh: float = _WAVELET.weights[3]
+
+    def resolve_iterations(self, n_train: int) -> None:
+        """Replace iterations = 0 by STEPS_PER_TRAINING_FRAME x n_train steps, at least
+        BASE_ITERATIONS, and stretch the schedule keys (SCALED_FIELDS, given for BASE_ITERATIONS
+        steps) by the same factor.  An iterations > 0 is kept, and the keys with it."""
+        if self.iterations > 0:
+            return
+        total = max(BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME * int(n_train))
+        r = total / BASE_ITERATIONS
+        for f in SCALED_FIELDS:
+            if getattr(self, f) > 0:          # lr_position_steps = 0 means "all of them" already
+                setattr(self, f, max(1, int(round(getattr(self, f) * r))))
+        self.iterations = total
 
     def resolve_density(self, width: int, height: int) -> None:
         """Replace init_points = 0 and max_gaussians = 0 by their per-pixel defaults for width x
@@ -244,7 +267,7 @@ _NON_NEGATIVE = (0, None, True, False)
 _POSITIVE = (0, None, False, False)
 _UNIT = (0, 1, True, True)
 RANGES = {
-    "iterations": _AT_LEAST_1, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
+    "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
     "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT,

@@ -53,6 +53,8 @@ class Trainer:
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
         self._auto_cap = cfg.max_gaussians <= 0           # raised for short lives once the model exists
+        self.auto_iterations = cfg.iterations <= 0        # visits per training frame (config.py)
+        cfg.resolve_iterations(len(scene.train_indices))
         cfg.resolve_density(scene.width, scene.height)   # per-pixel defaults of init_points, max_gaussians
         cfg.resolve_sh_degree(scene.one_viewpoint())     # sh_degree -1: 1 for a fixed camera, else 3
         self.run_dir = Path(run_dir)
