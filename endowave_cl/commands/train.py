@@ -22,12 +22,14 @@ DEMO_MAX_GAUSSIANS = 40000       # densification cap for the demo (~2 per pixel)
 
 
 def add_arguments(p) -> None:
+    from ..train.config import BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME
     p.add_argument("scene", nargs="?", help="scene folder in the EndoNeRF layout (omit with --demo)")
     p.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
     p.add_argument("--demo", action="store_true", help="train on the built-in synthetic scene (generated into RUN/demo_scene)")
     p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
-    p.add_argument("--iterations", type=int, help="number of training steps (default: 109 per training frame, at least "
-                                                      "6000, with the densification schedule stretched alike)")
+    p.add_argument("--iterations", type=int,
+                   help=f"number of training steps (default: {STEPS_PER_TRAINING_FRAME} per training frame, at "
+                        f"least {BASE_ITERATIONS}, with the densification schedule stretched alike)")
     p.add_argument("--minutes", type=float,
                    help="time budget: plan the steps, densification and learning-rate decay to end "
                         "training within this many minutes on this device (prints the plan)")
