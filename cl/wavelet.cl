@@ -6,8 +6,9 @@
  * Axis-generic layout: a contiguous array is viewed as [outer, n, inner] and the operation runs
  * along the middle axis.  For a channel-last image [H, W, C]: rows (along W) are
  * outer = H, n = W, inner = C; columns (along H) are outer = 1, n = H, inner = W * C.
- * One work-item per output element, 2-D global range: dimension 0 = x * inner + k (contiguous in
- * memory), dimension 1 = o; the element's flat index is o * n * inner + x * inner + k.
+ * Global range: dimension 0 = x * inner + k (contiguous in memory; a work-item takes a run of
+ * consecutive elements), dimension 1 = o; the element's flat index is o * n * inner + x * inner + k.
+ * The convolutions run over a stack of such arrays (slots), with dimension 2 = the output slot.
  */
 #include "common.h"
 
@@ -88,36 +89,69 @@ inline float conv_elem(__global const float *line, __global const float *f, int 
     return acc;
 }
 
-/* out[o, x, k] = sum_i f[i] in[o, reflect(x - (i - R)), k], R = flen / 2 (flen odd); with
- * zero_border != 0 the positions outside [0, n) count as zeros instead (zero padding, the blur of
- * the SSIM loss).  in, out: [outer, n, inner]; f: [flen].  Work-item (t, o) computes the flat elements
- * x * inner + k = t * CONV_RUN ... t * CONV_RUN + CONV_RUN - 1 of line o. */
+/* The stacked convolutions: input and output are stacks of equally shaped slots [outer, n, inner]
+ * (slot = outer * n * inner floats), f a stack of filters [*, flen], and output slot t is a sum of
+ * terms, each the convolution of one input slot with one filter:
+ *     terms[t * term_stride] = the number of terms (>= 1), then per term c
+ *     terms[t * term_stride + 1 + 2 c] = its input slot, terms[t * term_stride + 2 + 2 c] = its filter.
+ * The terms are added in their order after each is summed over its taps, so one term is exactly the
+ * single convolution and several are the sum of single convolutions, bit for bit.  One launch does a
+ * whole level's filtering along one axis (endowave_cl/wavelet/ops.py conv_axis_stack). */
+#define TERM_SRC(tt, c) (tt)[1 + 2 * (c)]
+#define TERM_FILTER(tt, c) (tt)[2 + 2 * (c)]
+
+/* out[t, o, x, k] = sum over the terms (s, g) of t of sum_i f[g, i] in[s, o, reflect(x - (i - R)), k],
+ * R = flen / 2 (flen odd); with zero_border != 0 the positions outside [0, n) count as zeros instead
+ * (zero padding, the blur of the SSIM loss).  Work-item (u, o, t) computes the flat elements
+ * x * inner + k = u * CONV_RUN ... u * CONV_RUN + CONV_RUN - 1 of line o of output slot t. */
 __kernel void conv_axis(__global const float *in, __global float *out,
                         __global const float *f, const int flen,
-                        const int outer, const int n, const int inner, const int zero_border) {
+                        const int outer, const int n, const int inner, const int zero_border,
+                        __global const int *terms, const int term_stride) {
     const int xi0 = get_global_id(0) * CONV_RUN;    /* first x * inner + k of this work-item */
     const int o = get_global_id(1);
+    const int t = get_global_id(2);
     const int len = n * inner;
     if (xi0 >= len || o >= outer) return;
     const int R = flen / 2;
-    __global const float *in_o = in + (size_t)o * len;
-    __global float *out_o = out + (size_t)o * len;
+    const size_t slot = (size_t)outer * len;
+    __global const int *tt = terms + t * term_stride;
+    const int nterm = tt[0];
+    __global float *out_o = out + t * slot + (size_t)o * len;
     /* xi0 / inner >= R and (xi0 + CONV_RUN - 1) / inner < n - R, without the divisions */
     if (xi0 + CONV_RUN <= len && xi0 >= R * inner && xi0 + CONV_RUN - 1 < (n - R) * inner) {
         /* interior run: element xi reads in_o[xi + (R - i) inner] for tap i */
 #if CONV_RUN == 16
-        float8 lo, hi;
-        conv_run16(in_o + xi0, f, flen, -inner, &lo, &hi);
+        float8 lo = (float8)(0.0f), hi = (float8)(0.0f);
+        for (int c = 0; c < nterm; ++c) {
+            float8 a, b;
+            conv_run16(in + TERM_SRC(tt, c) * slot + (size_t)o * len + xi0, f + TERM_FILTER(tt, c) * flen,
+                       flen, -inner, &a, &b);
+            lo = c ? lo + a : a;
+            hi = c ? hi + b : b;
+        }
         store8(out_o + xi0, lo);
         store8(out_o + xi0 + 8, hi);
 #else
-        store8(out_o + xi0, conv_run8(in_o + xi0, f, flen, -inner));
+        float8 acc = (float8)(0.0f);
+        for (int c = 0; c < nterm; ++c) {
+            const float8 a = conv_run8(in + TERM_SRC(tt, c) * slot + (size_t)o * len + xi0,
+                                       f + TERM_FILTER(tt, c) * flen, flen, -inner);
+            acc = c ? acc + a : a;
+        }
+        store8(out_o + xi0, acc);
 #endif
     } else {
         const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
         for (int xi = xi0; xi < end; ++xi) {
             const int x = xi / inner;
-            out_o[xi] = conv_elem(in_o + (xi - x * inner), f, flen, n, inner, x, zero_border);
+            float acc = 0.0f;
+            for (int c = 0; c < nterm; ++c) {
+                const float e = conv_elem(in + TERM_SRC(tt, c) * slot + (size_t)o * len + (xi - x * inner),
+                                          f + TERM_FILTER(tt, c) * flen, flen, n, inner, x, zero_border);
+                acc = c ? acc + e : e;
+            }
+            out_o[xi] = acc;
         }
     }
 }
@@ -157,27 +191,39 @@ inline float v_conv_elem(__global const float *line, __global const float *f, in
     return acc;
 }
 
-/* Adjoint of conv_axis.  v_in[o, y, k] (+)= sum over padded positions m in [-R, n - 1 + R] with
+/* Adjoint of conv_axis, with the same term table read the other way: output slot t of conv_axis_bwd
+ * is the sum over its terms (s, g) of the adjoint of convolving with f[g], applied to v_out slot s.
+ * For one term: v_in[o, y, k] (+)= sum over padded positions m in [-R, n - 1 + R] with
  * reflect(m) = y of sum_i f[i] v_out[o, m + i - R, k] (terms with m + i - R outside [0, n)
  * dropped).  The positions m that reflect onto y are y + j P and -y + j P, P = 2 (n - 1).
- * v_out, v_in: [outer, n, inner]; accumulate != 0 adds to v_in instead of overwriting it.
- * Work-item (t, o) computes CONV_RUN consecutive flat elements, as in conv_axis. */
+ * accumulate != 0 adds the sum to v_in instead of overwriting it.  Work-item (u, o, t) computes
+ * CONV_RUN consecutive flat elements of line o of slot t, as in conv_axis. */
 __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
                           __global const float *f, const int flen,
-                          const int outer, const int n, const int inner, const int accumulate) {
+                          const int outer, const int n, const int inner, const int accumulate,
+                          __global const int *terms, const int term_stride) {
     const int yi0 = get_global_id(0) * CONV_RUN;    /* first y * inner + k of this work-item */
     const int o = get_global_id(1);
+    const int t = get_global_id(2);
     const int len = n * inner;
     if (yi0 >= len || o >= outer) return;
     const int R = flen / 2;
-    __global const float *vo = v_out + (size_t)o * len;
-    __global float *vi = v_in + (size_t)o * len;
+    const size_t slot = (size_t)outer * len;
+    __global const int *tt = terms + t * term_stride;
+    const int nterm = tt[0];
+    __global float *vi = v_in + t * slot + (size_t)o * len;
     /* yi0 / inner > R and (yi0 + CONV_RUN - 1) / inner < n - 1 - R, without the divisions */
     if (yi0 + CONV_RUN <= len && yi0 >= (R + 1) * inner && yi0 + CONV_RUN - 1 < (n - 1 - R) * inner) {
         /* interior run: element yi reads vo[yi + (i - R) inner] for tap i */
 #if CONV_RUN == 16
-        float8 lo, hi;
-        conv_run16(vo + yi0, f, flen, inner, &lo, &hi);
+        float8 lo = (float8)(0.0f), hi = (float8)(0.0f);
+        for (int c = 0; c < nterm; ++c) {
+            float8 a, b;
+            conv_run16(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len + yi0, f + TERM_FILTER(tt, c) * flen,
+                       flen, inner, &a, &b);
+            lo = c ? lo + a : a;
+            hi = c ? hi + b : b;
+        }
         if (accumulate) {
             lo += load8(vi + yi0);
             hi += load8(vi + yi0 + 8);
@@ -185,7 +231,12 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
         store8(vi + yi0, lo);
         store8(vi + yi0 + 8, hi);
 #else
-        float8 acc = conv_run8(vo + yi0, f, flen, inner);
+        float8 acc = (float8)(0.0f);
+        for (int c = 0; c < nterm; ++c) {
+            const float8 a = conv_run8(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len + yi0,
+                                       f + TERM_FILTER(tt, c) * flen, flen, inner);
+            acc = c ? acc + a : a;
+        }
         if (accumulate) acc += load8(vi + yi0);
         store8(vi + yi0, acc);
 #endif
@@ -193,7 +244,12 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
         const int end = yi0 + CONV_RUN < len ? yi0 + CONV_RUN : len;
         for (int yi = yi0; yi < end; ++yi) {
             const int y = yi / inner;
-            float acc = v_conv_elem(vo + (yi - y * inner), f, flen, n, inner, y);
+            float acc = 0.0f;
+            for (int c = 0; c < nterm; ++c) {
+                const float e = v_conv_elem(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len + (yi - y * inner),
+                                            f + TERM_FILTER(tt, c) * flen, flen, n, inner, y);
+                acc = c ? acc + e : e;
+            }
             if (accumulate) acc += vi[yi];
             vi[yi] = acc;
         }
@@ -371,25 +427,38 @@ __kernel void scale_masked(__global float *x, __global const float *mask, const 
     x[gid] = v;
 }
 
-/* partial[slot * groups + group] = sum of x[i]^2 over this group's grid-stride share of [0, n).
- * Local size must be a power of two; scratch holds one float per work-item. */
-__kernel void sumsq_partial(__global const float *x, const int n,
-                            __global float *partial, const int slot,
-                            __local float *scratch) {
-    const int lid = get_local_id(0);
-    const int lsize = get_local_size(0);
-    const int groups = get_num_groups(0);
-    const int stride = get_global_size(0);
+/* For band b = get_global_id(1) of the stack x [bands, m]: work-item u sums the squares of its
+ * RED_CHUNK consecutive elements into partial[base + b * chunks + u] (chunks = the global size along
+ * dimension 0) and scales them in place by s_b (s0 .. s3: at most four bands), each element read
+ * once and then written; the partial sums are those of the unscaled band, added up by the host.
+ * (No work-group reduction: on PoCL a barrier-synchronised tree took twenty times as long.)
+ * RED_CHUNK, a multiple of 8, is a build option (endowave_cl/wavelet/ops.py); builds of this file
+ * without it leave the kernel out. */
+#ifdef RED_CHUNK
+__kernel void sumsq_scale(__global float *x, const int m, __global float *partial, const int base,
+                          const float s0, const float s1, const float s2, const float s3) {
+    const int u = get_global_id(0);
+    const int b = get_global_id(1);
+    const int chunks = get_global_size(0);
+    const float s = b == 0 ? s0 : b == 1 ? s1 : b == 2 ? s2 : s3;
+    __global float *xb = x + (size_t)b * m;
+    const int i0 = u * RED_CHUNK;
     float acc = 0.0f;
-    for (int i = get_global_id(0); i < n; i += stride) {
-        const float v = x[i];
-        acc += v * v;
+    if (i0 + RED_CHUNK <= m) {
+        float8 a = (float8)(0.0f);
+        for (int k = 0; k < RED_CHUNK; k += 8) {
+            const float8 v = load8(xb + i0 + k);
+            a += v * v;
+            store8(xb + i0 + k, v * s);
+        }
+        acc = ((a.s0 + a.s1) + (a.s2 + a.s3)) + ((a.s4 + a.s5) + (a.s6 + a.s7));
+    } else {
+        for (int i = i0; i < m; ++i) {
+            const float v = xb[i];
+            acc += v * v;
+            xb[i] = v * s;
+        }
     }
-    scratch[lid] = acc;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int s = lsize / 2; s > 0; s >>= 1) {
-        if (lid < s) scratch[lid] += scratch[lid + s];
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    if (lid == 0) partial[slot * groups + get_group_id(0)] = scratch[0];
+    partial[base + b * chunks + u] = acc;
 }
+#endif

@@ -84,6 +84,61 @@ def test_conv_adjoint_accumulates_over_interior_runs(rt, conv_run, axis):
     np.testing.assert_allclose(out.get(), base + ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get(), atol=1e-5)
 
 
+# stacks of 3 slots, output slots with 1 to 3 terms (a slot and a filter used twice, in any order)
+STACK_TERMS = (((2, 1),), ((0, 0), (1, 2)), ((1, 1), (0, 1), (2, 0)), ((0, 2),))
+
+
+@pytest.mark.parametrize("shape, axis", [((3, 5, 7, 3), 2), ((3, 33, 21, 3), 1), ((3, 33, 21, 3), 2),
+                                         ((3, 45, 13, 3), 1), ((3, 2, 4, 1), 1), ((3, 70), 1)])
+@pytest.mark.parametrize("border", ["reflect", "zero"])
+def test_conv_axis_stack_matches_reference(rt, conv_run, shape, axis, border):
+    x = rand(shape, 3)
+    f = rand((3, 13), 4)
+    got = ops.conv_axis_stack(rt, dev(rt, x), f, STACK_TERMS, axis, border=border).get()
+    assert got.shape == (len(STACK_TERMS),) + shape[1:]
+    if border == "reflect":
+        np.testing.assert_allclose(got, F.conv_axis_stack(x, f, STACK_TERMS, axis), rtol=1e-5, atol=1e-5)
+    # each output slot is, bit for bit, its terms' single convolutions added in order
+    for t, terms in enumerate(STACK_TERMS):
+        one = [ops.conv_axis(rt, dev(rt, x[s]), f[g], axis - 1, border=border).get() for s, g in terms]
+        np.testing.assert_array_equal(got[t], sum(one[1:], one[0]))
+
+
+@pytest.mark.parametrize("shape, axis", [((3, 5, 7, 3), 2), ((3, 33, 21, 3), 1), ((3, 33, 21, 3), 2),
+                                         ((3, 2, 4, 1), 1), ((3, 1, 9, 2), 1), ((3, 70), 1)])
+def test_conv_axis_stack_adjoint(rt, conv_run, shape, axis):
+    x = rand(shape, 5)
+    f = rand((3, 13), 6)
+    Ax = ops.conv_axis_stack(rt, dev(rt, x), f, STACK_TERMS, axis).get()
+    # the adjoint reads the same terms the other way: input slot s of the forward gathers from the
+    # output slots t whose terms use s
+    back = tuple(tuple((t, g) for t, terms in enumerate(STACK_TERMS) for s2, g in terms if s2 == s)
+                 for s in range(shape[0]))
+    y = rand(Ax.shape, 7)
+    ATy = ops.conv_axis_stack_bwd(rt, dev(rt, y), f, back, axis).get()
+    assert ATy.shape == x.shape
+    assert dot(Ax, y) == pytest.approx(dot(x, ATy), rel=1e-4, abs=1e-4)
+    # bit for bit the single adjoints added in order, and accumulating adds
+    for s, terms in enumerate(back):
+        one = [ops.conv_axis_bwd(rt, dev(rt, y[t]), f[g], axis - 1).get() for t, g in terms]
+        np.testing.assert_array_equal(ATy[s], sum(one[1:], one[0]))
+    out = dev(rt, x)
+    ops.conv_axis_stack_bwd(rt, dev(rt, y), f, back, axis, out=out, accumulate=True)
+    np.testing.assert_array_equal(out.get(), x + ATy)
+
+
+def test_conv_axis_stack_refuses_bad_terms(rt):
+    x = dev(rt, rand((2, 6, 5), 0))
+    f = rand((3, 5), 1)
+    for terms in (((),), (((2, 0),),), (((0, 3),),), (((0, -1),),)):
+        with pytest.raises(ValueError):
+            ops.conv_axis_stack(rt, x, f, terms, 1)
+    with pytest.raises(ValueError):
+        ops.conv_axis_stack(rt, x, f, (((0, 0),),), 0)        # the slot axis
+    with pytest.raises(ValueError):
+        ops.conv_axis_stack_bwd(rt, x, f, (((0, 0),),), 1, out=dev(rt, rand((2, 6, 5), 2)))   # out of 1 slot
+
+
 def test_adjoints_accumulate(rt):
     y, f = rand((6, 5, 2), 5), rand(9, 6)
     base = rand((6, 5, 2), 7)

@@ -80,6 +80,25 @@ def test_levels_and_weights_change_the_loss(rt):
     assert vals[1, (0, 0, 0, 1)] > 0
 
 
+@pytest.mark.parametrize("weights", [(0.0, 0.0, 2.0, 0.0), (0.0, 32.0, 32.0, 32.0), (3.0, 0.0, 0.0, 0.0)])
+def test_bands_without_weight_are_left_out_exactly(rt, weights):
+    # only the bands with a weight (and LL feeding the next level) are computed: the loss and the
+    # gradient still match the full transform's
+    r, t, m = images((29, 37, 3), 11)
+    cfg = WaveletConfig(q=2, levels=3, weights=weights)
+    loss, v = wavelet_loss_and_grad(rt, dev(rt, r), dev(rt, t), dev(rt, m), cfg)
+    ref_loss, ref_grad = torch_loss_grad(r, t, m, cfg)
+    assert loss == pytest.approx(ref_loss, rel=1e-5)
+    np.testing.assert_allclose(v.get(), ref_grad, rtol=1e-4, atol=1e-6 * np.abs(ref_grad).max())
+
+
+def test_no_weight_no_loss(rt):
+    r, t, m = images((9, 8, 3), 12)
+    loss, v = wavelet_loss_and_grad(rt, dev(rt, r), dev(rt, t), dev(rt, m), WaveletConfig(weights=(0, 0, 0, 0)))
+    assert loss == 0.0
+    assert v.shape == r.shape and not np.any(v.get())
+
+
 def test_masked_pixels_do_not_matter(rt):
     r, t, m = images((16, 14, 3), 5)
     r2 = r.copy()
@@ -206,6 +225,37 @@ def test_oclgrind_conv_interior_runs(rt, run, monkeypatch):
         out = dev(rt, x)
         ATy = ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True).get() - x
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("run", [ops.CONV_RUN_GPU, ops.CONV_RUN_CPU])
+def test_oclgrind_conv_stack_terms(rt, run, monkeypatch):
+    # the stacked convolutions with one to three terms per output slot, interior runs and borders,
+    # and the adjoint accumulating
+    monkeypatch.setattr(ops, "conv_run", lambda rt: run)
+    f = np.random.default_rng(4).standard_normal((3, 13)).astype(np.float32)
+    terms = (((1, 2),), ((0, 0), (1, 1)), ((1, 0), (0, 2), (1, 1)))
+    for shape, axis in (((2, 3, 37, 3), 2), ((2, 29, 5, 3), 1)):
+        x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
+        Ax = ops.conv_axis_stack(rt, dev(rt, x), f, terms, axis).get()
+        np.testing.assert_allclose(Ax, F.conv_axis_stack(x, f, terms, axis), rtol=1e-5, atol=1e-5)
+        back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+        y = np.random.default_rng(axis + 5).standard_normal(Ax.shape).astype(np.float32)
+        out = dev(rt, x)
+        ATy = ops.conv_axis_stack_bwd(rt, dev(rt, y), f, back, axis, out=out, accumulate=True).get() - x
+        assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
+
+
+@pytest.mark.oclgrind
+def test_oclgrind_loss_with_bands_left_out(rt):
+    # the default weights (no LL term): the last level computes three bands, sumsq_scale's chunks
+    # end inside a band (sizes not multiples of RED_CHUNK or of 8)
+    r, t, m = images((17, 23, 3), 2)
+    cfg = WaveletConfig(q=2, weights=(0.0, 32.0, 32.0, 32.0))
+    loss, v = wavelet_loss_and_grad(rt, dev(rt, r), dev(rt, t), dev(rt, m), cfg)
+    ref_loss, ref_grad = torch_loss_grad(r, t, m, cfg)
+    assert loss == pytest.approx(ref_loss, rel=1e-5)
+    np.testing.assert_allclose(v.get(), ref_grad, rtol=1e-4, atol=1e-6 * np.abs(ref_grad).max())
 
 
 @pytest.mark.oclgrind

@@ -101,7 +101,7 @@ class PendingLosses:
     """The losses of one step, enqueued on the device: the gradient image, the device sums the loss
     values are made of, and how the host finishes them once it has read the sums back."""
     v_features: object                 # cla [H, W, CF]: d total / d features
-    sums: Dict[str, object]            # "image": cla [groups, NSUM] f32; "wavelet": cla [slots * groups] f32
+    sums: Dict[str, object]            # "image": cla [groups, NSUM] f32; "wavelet": cla [partial sums] f32
     finish: Callable[[Dict[str, np.ndarray]], Tuple[float, Dict[str, float]]]   # host sums -> (total, parts)
     v_gaussian_features: Optional[object] = None   # cla [N, C]: d total / d project4d's per-Gaussian
                                                    # features (gaussian_flow_enqueue), or None
@@ -155,8 +155,9 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     partial = cla.empty(q, (groups, NSUM), np.float32, allocator=rt.pool())
     w_rgb = cfg.lambda_rgb / tgt.n_rgb
     dummy = tgt.mask.data
-    rt.kernel(KFILE, "image_loss_terms", opts)(
-        q, gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data, blurred.data, tgt.ssim_target.data,
+    rt.launch(
+        rt.kernel(KFILE, "image_loss_terms", opts), gsize, (LOCAL,),
+        features.data, tgt.image.data, tgt.mask.data, blurred.data, tgt.ssim_target.data,
         tgt.depth.data if use_depth else dummy, tgt.depth_w.data if use_depth else dummy,
         tgt.flow.data if use_flow else dummy, tgt.flow_w.data if use_flow else dummy,
         np.int32(use_depth), np.int32(use_flow),

@@ -126,6 +126,17 @@ def conv_axis(x: np.ndarray, f: np.ndarray, axis: int) -> np.ndarray:
     return np.moveaxis(out, 0, axis)
 
 
+def conv_axis_stack(x: np.ndarray, f: np.ndarray, terms, axis: int) -> np.ndarray:
+    """The stacked convolution of ops.conv_axis_stack: out[t] = sum over the terms (s, g) of t of
+    conv_axis(x[s], f[g]) along axis (an axis of x other than the first, the slot axis)."""
+    x = np.asarray(x, dtype=np.float64)
+    f = np.atleast_2d(np.asarray(f, dtype=np.float64))
+    ax = axis % x.ndim
+    if ax == 0:
+        raise ValueError("axis must not be the slot axis")
+    return np.stack([sum(conv_axis(x[s], f[g], ax - 1) for s, g in t) for t in terms])
+
+
 def resample_weights(n: int, q: int) -> np.ndarray:
     """The resampling matrix [N_out, n] (linear interpolation at n_out * p / q)."""
     p, q = rational_factor(q)

@@ -5,8 +5,12 @@ border rule, resampler, band definitions) are those of :mod:`endowave_cl.wavelet
 
 Axis-generic ops run along one axis of an array of any rank:
   conv_axis / conv_axis_bwd           convolution with an odd-length filter, reflect border
+  conv_axis_stack / _bwd              the same over a stack of arrays: each output slot a sum of
+                                      convolutions of input slots with filters of a filter stack
   resample_axis / resample_axis_bwd   rational resampling by a = (q + 1) / q
 Image-level ops, images channel-last [H, W, C]:
+  decompose_level_stack / _bwd          one level as a band stack [bands, H', W', C]: two stacked
+                                        convolutions and two resamplings, whatever the bands
   decompose(rt, img, q, levels)         -> [{"LL","LH","HL","HH": [H_j, W_j, C]} for each level j]
   decompose_bwd(rt, v_coeffs, shape, q) -> v_img [H, W, C]   (the adjoint of decompose)
   loss_and_grad(rt, rendered, target, mask, q, levels, weights) -> (loss, v_rendered)
@@ -24,8 +28,7 @@ from .filters import BAND_FILTERS, BANDS, design_filters, rational_factor, resam
 
 KFILE = "wavelet.cl"
 GROUP = 64            # 1-D work-group multiple for the element-wise kernels
-RED_LOCAL = 64        # work-items per group in sumsq_partial (power of two)
-RED_GROUPS = 64       # groups per sumsq_partial launch (one slot = RED_GROUPS partial sums)
+RED_CHUNK = 64        # consecutive elements per work-item of sumsq_scale (a multiple of 8)
 
 
 def _empty(rt, shape) -> cla.Array:
@@ -75,23 +78,52 @@ def _resample_options(q: int) -> List[str]:
     return [f"-DRP={p}", f"-DRQ={q}"]
 
 
-def _filter_array(rt, f) -> Tuple[cla.Array, int]:
+def _filter_stack(rt, f) -> Tuple[cla.Array, int, int]:
+    """(device filters, count, flen) of one filter [flen] or a stack [count, flen] (numpy or device)."""
     if isinstance(f, cla.Array):
-        n = int(f.size)
         arr = f
     else:
-        f = np.ascontiguousarray(np.asarray(f, dtype=np.float32).ravel())
-        n = int(f.size)
-        arr = cla.to_device(rt.queue, f)
-    if n % 2 != 1:
-        raise ValueError(f"filter length must be odd, got {n}")
-    return arr, n
+        f = np.asarray(f, dtype=np.float32)
+        arr = cla.to_device(rt.queue, np.ascontiguousarray(f))
+    count, flen = (1, int(arr.size)) if arr.ndim == 1 else (int(arr.shape[0]), int(arr.shape[-1]))
+    if arr.ndim > 2 or flen % 2 != 1:
+        raise ValueError(f"filter length must be odd, got {flen}")
+    return arr, count, flen
 
 
-def device_filters(rt, q: int) -> Dict[str, cla.Array]:
-    """h0, h1, g of design_filters(q) as float32 device arrays (cached per runtime and q)."""
-    return rt.cached(("wavelet.filters", int(q)), lambda: {
-        k: cla.to_device(rt.queue, v.astype(np.float32)) for k, v in design_filters(q).items()})
+FILTERS = ("h0", "h1", "g")   # the order of device_filter_stack's rows
+
+
+def device_filter_stack(rt, q: int) -> cla.Array:
+    """h0, h1, g of design_filters(q) as a float32 device stack [3, flen] (cached per runtime and q)."""
+    def make():
+        f = design_filters(q)
+        return cla.to_device(rt.queue, np.stack([f[k] for k in FILTERS]).astype(np.float32))
+    return rt.cached(("wavelet.filters", int(q)), make)
+
+
+Terms = Tuple[Tuple[Tuple[int, int], ...], ...]   # per output slot: ((input slot, filter index), ...)
+
+
+def _terms_table(rt, terms: Terms, n_in: int, n_filters: int) -> Tuple[cla.Array, int]:
+    """The term table of cl/wavelet.cl conv_axis (count, then (slot, filter) pairs per output slot),
+    cached per runtime, and its row stride."""
+    terms = tuple(tuple((int(s), int(g)) for s, g in t) for t in terms)
+    for t in terms:
+        if not t or any(not (0 <= s < n_in and 0 <= g < n_filters) for s, g in t):
+            raise ValueError(f"terms {t} need 1 or more (slot < {n_in}, filter < {n_filters}) pairs")
+
+    def make():
+        stride = 1 + 2 * max(len(t) for t in terms)
+        table = np.zeros((len(terms), stride), np.int32)
+        for i, t in enumerate(terms):
+            table[i, 0] = len(t)
+            table[i, 1:1 + 2 * len(t)] = np.asarray(t, np.int32).ravel()
+        return cla.to_device(rt.queue, table.ravel()), stride
+    return rt.cached(("wavelet.terms", terms), make)
+
+
+SINGLE: Terms = (((0, 0),),)   # one output slot: input slot 0 with filter 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -101,21 +133,80 @@ def device_filters(rt, q: int) -> Dict[str, cla.Array]:
 BORDERS = ("reflect", "zero")
 
 
+def _stack_axis(x: cla.Array, axis: int) -> Tuple[int, int, int, int]:
+    """(slots, outer, n, inner) of a stack x [slots, ...] around axis (an axis of x, not the first)."""
+    ax = axis % x.ndim
+    if x.ndim < 2 or ax == 0:
+        raise ValueError(f"axis {axis} of a stack {x.shape} must not be its first (the slot) axis")
+    outer, n, inner = _dims(x.shape[1:], ax - 1)
+    return int(x.shape[0]), outer, n, inner
+
+
+def conv_axis_stack(rt, x: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array] = None,
+                    border: str = "reflect") -> cla.Array:
+    """out[t] = sum over the terms (s, g) of t of the convolution of x[s] with f[g] along axis.
+
+    x: a stack [S, ...]; f: filters [F, flen] (or one [flen]); terms: per output slot, (input slot,
+    filter index) pairs, added in their order; axis: an axis of x other than the first.  Returns
+    out [len(terms), ...].  border as conv_axis.  One launch for all the output slots."""
+    _check(x, "x")
+    if border not in BORDERS:
+        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
+    farr, nf, flen = _filter_stack(rt, f)
+    slots, outer, n, inner = _stack_axis(x, axis)
+    table, stride = _terms_table(rt, terms, slots, nf)
+    shape = (len(terms),) + tuple(x.shape[1:])
+    out = _empty(rt, shape) if out is None else out
+    if tuple(out.shape) != shape:
+        raise ValueError(f"out must be {shape}, got {out.shape}")
+    run = conv_run(rt)
+    items = -(-max(n * inner, 1) // run)
+    rt.launch(rt.kernel(KFILE, "conv_axis", [f"-DCONV_RUN={run}"]),
+              (round_up(items, GROUP), max(outer, 1), len(terms)), None, x.data, out.data, farr.data,
+              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(border == "zero"),
+              table.data, np.int32(stride))
+    return out
+
+
+def conv_axis_stack_bwd(rt, v_out: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array] = None,
+                        accumulate: bool = False) -> cla.Array:
+    """Adjoint of conv_axis_stack with the same terms, read the other way: out[t] (+)= sum over the
+    terms (s, g) of t of the adjoint of convolving with f[g], applied to v_out[s] (reflect border)."""
+    _check(v_out, "v_out")
+    farr, nf, flen = _filter_stack(rt, f)
+    slots, outer, n, inner = _stack_axis(v_out, axis)
+    table, stride = _terms_table(rt, terms, slots, nf)
+    shape = (len(terms),) + tuple(v_out.shape[1:])
+    if out is None:
+        if accumulate:
+            raise ValueError("accumulate needs out")
+        out = _empty(rt, shape)
+    if tuple(out.shape) != shape:
+        raise ValueError(f"out must be {shape}, got {out.shape}")
+    run = conv_run(rt)
+    items = -(-max(n * inner, 1) // run)
+    rt.launch(rt.kernel(KFILE, "conv_axis_bwd", [f"-DCONV_RUN={run}"]),
+              (round_up(items, GROUP), max(outer, 1), len(terms)), None, v_out.data, out.data, farr.data,
+              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)),
+              table.data, np.int32(stride))
+    return out
+
+
+def _one(x: Optional[cla.Array]) -> Optional[cla.Array]:
+    """x as a stack of one slot (a view)."""
+    return None if x is None else x.reshape((1,) + tuple(x.shape))
+
+
 def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
               border: str = "reflect") -> cla.Array:
     """Convolution of x with the odd-length filter f along axis; same shape.  border "reflect"
     (whole-sample symmetric, the wavelet's rule) or "zero" (zero padding; its adjoint is the
     convolution with the reversed filter and the same border)."""
     _check(x, "x")
-    if border not in BORDERS:
-        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
-    farr, flen = _filter_array(rt, f)
-    outer, n, inner = _dims(x.shape, axis)
+    if _filter_stack(rt, f)[1] != 1:
+        raise ValueError("conv_axis takes one filter")
     out = _empty(rt, x.shape) if out is None else out
-    run = conv_run(rt)
-    _launch_axis(rt, rt.kernel(KFILE, "conv_axis", [f"-DCONV_RUN={run}"]), n, inner, outer, x.data, out.data,
-                 farr.data, np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner),
-                 np.int32(border == "zero"), run=run)
+    conv_axis_stack(rt, _one(x), f, SINGLE, (axis % max(x.ndim, 1)) + 1, out=_one(out), border=border)
     return out
 
 
@@ -123,16 +214,12 @@ def conv_axis_bwd(rt, v_out: cla.Array, f, axis: int, out: Optional[cla.Array] =
                 accumulate: bool = False) -> cla.Array:
     """Adjoint of conv_axis; adds into out when accumulate."""
     _check(v_out, "v_out")
-    farr, flen = _filter_array(rt, f)
-    outer, n, inner = _dims(v_out.shape, axis)
     if out is None:
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, v_out.shape)
-    run = conv_run(rt)
-    _launch_axis(rt, rt.kernel(KFILE, "conv_axis_bwd", [f"-DCONV_RUN={run}"]), n, inner, outer, v_out.data,
-                 out.data, farr.data, np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner),
-                 np.int32(bool(accumulate)), run=run)
+    conv_axis_stack_bwd(rt, _one(v_out), f, SINGLE, (axis % max(v_out.ndim, 1)) + 1, out=_one(out),
+                        accumulate=accumulate)
     return out
 
 
@@ -192,71 +279,72 @@ def _as_hwc(img: cla.Array) -> cla.Array:
     return img
 
 
-def decompose_level(rt, img: cla.Array, q: int) -> Dict[str, cla.Array]:
-    """One level: img [H, W, C] -> {band: [H', W', C]}."""
-    f = device_filters(rt, q)
-    H, W, C = img.shape
-    rows = {}
-    tmp = _empty(rt, (H, W, C))
-    for k in ("h0", "h1", "g"):
-        conv_axis(rt, img, f[k], axis=1, out=tmp)
-        rows[k] = resample_axis(rt, tmp, q, axis=1)              # [H, W', C]
-    W2 = rows["h0"].shape[1]
-    tmp2 = _empty(rt, (H, W2, C))
-    out = {}
-    for band in BANDS:
-        fr, fc = BAND_FILTERS[band]
-        conv_axis(rt, rows[fr], f[fc], axis=0, out=tmp2)
-        out[band] = resample_axis(rt, tmp2, q, axis=0)           # [H', W', C]
-    return out
+class LevelPlan:
+    """Which bands one level computes (a subset of BANDS, in BANDS order: LL first when present, so
+    that a stack's slot 0 is the next level's input) and the term tables of its four stacked
+    convolutions.  rows: the row filters those bands need, in FILTERS order (the row stack's slots)."""
+
+    def __init__(self, bands: Sequence[str]):
+        self.bands = tuple(b for b in BANDS if b in bands)
+        if not self.bands:
+            raise ValueError("a level needs at least one band")
+        self.rows = tuple(k for k in FILTERS if any(BAND_FILTERS[b][0] == k for b in self.bands))
+        fi = FILTERS.index
+        # forward: row slot r = the image (slot 0) with filter rows[r]; band slot i = its row slot with
+        # its column filter
+        self.row_terms: Terms = tuple(((0, fi(k)),) for k in self.rows)
+        self.col_terms: Terms = tuple(((self.rows.index(BAND_FILTERS[b][0]), fi(BAND_FILTERS[b][1])),)
+                                      for b in self.bands)
+        # adjoint: row slot r gathers the bands made from it; the image gathers the row slots
+        self.col_bwd_terms: Terms = tuple(
+            tuple((i, fi(BAND_FILTERS[b][1])) for i, b in enumerate(self.bands) if BAND_FILTERS[b][0] == k)
+            for k in self.rows)
+        self.row_bwd_terms: Terms = (tuple((r, fi(k)) for r, k in enumerate(self.rows)),)
 
 
-def decompose(rt, img: cla.Array, q: int, levels: int = 2) -> List[Dict[str, cla.Array]]:
-    """J-level transform of img [H, W, C] (or [H, W]); LL of level j is the input of level j + 1."""
-    _check(img, "img")
-    cur = _as_hwc(img)
-    out = []
-    for _ in range(int(levels)):
-        bands = decompose_level(rt, cur, q)
-        out.append(bands)
-        cur = bands["LL"]
-    return out
+ALL_BANDS = LevelPlan(BANDS)
 
 
-def decompose_level_bwd(rt, v_bands: Dict[str, Sequence[cla.Array]], shape, q: int,
-                      out: Optional[cla.Array] = None, accumulate: bool = False) -> cla.Array:
-    """Adjoint of decompose_level.  v_bands maps each band to a list of cotangents [H', W', C]
-    that are summed (so LL can take its own cotangent and the next level's adjoint)."""
-    f = device_filters(rt, q)
+def decompose_level_stack(rt, img: cla.Array, q: int, plan: LevelPlan = ALL_BANDS) -> cla.Array:
+    """One level: img [H, W, C] -> the band stack [len(plan.bands), H', W', C]."""
+    f = device_filter_stack(rt, q)
+    rows = conv_axis_stack(rt, _one(img), f, plan.row_terms, axis=2)      # [rows, H, W, C]
+    rows = resample_axis(rt, rows, q, axis=2)                             # [rows, H, W', C]
+    cols = conv_axis_stack(rt, rows, f, plan.col_terms, axis=1)           # [bands, H, W', C]
+    return resample_axis(rt, cols, q, axis=1)                             # [bands, H', W', C]
+
+
+def decompose_level_stack_bwd(rt, v_stack: cla.Array, shape, q: int, plan: LevelPlan = ALL_BANDS,
+                              out: Optional[cla.Array] = None, accumulate: bool = False) -> cla.Array:
+    """Adjoint of decompose_level_stack: v_stack [bands, H', W', C] -> v_img [H, W, C] (added to out
+    when accumulate)."""
+    f = device_filter_stack(rt, q)
     H, W, C = (int(s) for s in shape)
-    W2 = resampled_length(W, q)
-    tmp = _empty(rt, (H, W2, C))
-    v_rows = {}
-    for band in BANDS:
-        fr, fc = BAND_FILTERS[band]
-        parts = [v for v in v_bands[band] if v is not None]
-        for i, v in enumerate(parts):
-            resample_axis_bwd(rt, v, q, axis=0, n_in=H, out=tmp, accumulate=i > 0)
-        if not parts:
-            continue
-        acc = fr in v_rows
-        if not acc:
-            v_rows[fr] = _empty(rt, (H, W2, C))
-        conv_axis_bwd(rt, tmp, f[fc], axis=0, out=v_rows[fr], accumulate=acc)
     if out is None:
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, (H, W, C))
-    tmp_w = _empty(rt, (H, W, C))
-    first = not accumulate
-    if not v_rows:
-        if first:
-            out.fill(0)
-        return out
-    for k, v in v_rows.items():
-        resample_axis_bwd(rt, v, q, axis=1, n_in=W, out=tmp_w)
-        conv_axis_bwd(rt, tmp_w, f[k], axis=1, out=out, accumulate=not first)
-        first = False
+    u = resample_axis_bwd(rt, v_stack, q, axis=1, n_in=H)                 # [bands, H, W', C]
+    v_rows = conv_axis_stack_bwd(rt, u, f, plan.col_bwd_terms, axis=1)    # [rows, H, W', C]
+    w = resample_axis_bwd(rt, v_rows, q, axis=2, n_in=W)                  # [rows, H, W, C]
+    conv_axis_stack_bwd(rt, w, f, plan.row_bwd_terms, axis=2, out=_one(out), accumulate=accumulate)
+    return out
+
+
+def _bands_of(stack: cla.Array, plan: LevelPlan) -> Dict[str, cla.Array]:
+    return {b: stack[i] for i, b in enumerate(plan.bands)}
+
+
+def decompose(rt, img: cla.Array, q: int, levels: int = 2) -> List[Dict[str, cla.Array]]:
+    """J-level transform of img [H, W, C] (or [H, W]); LL of level j is the input of level j + 1.
+    Each level's bands are views of its band stack."""
+    _check(img, "img")
+    cur = _as_hwc(img)
+    out = []
+    for _ in range(int(levels)):
+        stack = decompose_level_stack(rt, cur, q)
+        out.append(_bands_of(stack, ALL_BANDS))
+        cur = stack[0]
     return out
 
 
@@ -269,12 +357,23 @@ def decompose_bwd(rt, v_coeffs: List[Dict[str, cla.Array]], shape, q: int) -> cl
     shapes = [(H, W)]
     for _ in range(len(v_coeffs) - 1):
         shapes.append((resampled_length(shapes[-1][0], q), resampled_length(shapes[-1][1], q)))
-    v_next = None
-    for j in range(len(v_coeffs) - 1, -1, -1):
-        vb = {b: [v_coeffs[j][b]] for b in BANDS}
-        vb["LL"].append(v_next)
-        v_next = decompose_level_bwd(rt, vb, (shapes[j][0], shapes[j][1], C), q)
-    return v_next
+    stacks = []   # the cotangents copied into band stacks [4, H_j, W_j, C]
+    for j, vb in enumerate(v_coeffs):
+        stack = _empty(rt, (len(BANDS), resampled_length(shapes[j][0], q), resampled_length(shapes[j][1], q), C))
+        nbytes = stack[0].nbytes
+        for i, b in enumerate(BANDS):
+            v = vb[b]
+            _check(v, f"v_coeffs[{j}][{b!r}]")
+            if v.nbytes != nbytes:
+                raise ValueError(f"v_coeffs[{j}][{b!r}] has {v.size} values, the band {stack.shape[1:]}")
+            cl.enqueue_copy(rt.queue, stack.base_data, v.base_data, dst_offset=i * nbytes, src_offset=v.offset,
+                            byte_count=nbytes)
+        stacks.append(stack)
+    # each level's adjoint adds into the LL slot of the level above, then runs that level's
+    for j in range(len(stacks) - 1, 0, -1):
+        decompose_level_stack_bwd(rt, stacks[j], (shapes[j][0], shapes[j][1], C), q, out=stacks[j - 1][0],
+                                  accumulate=True)
+    return decompose_level_stack_bwd(rt, stacks[0], (H, W, C), q)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,7 +395,7 @@ def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Opt
                            q: int, levels: int, weights: Sequence[float]):
     """loss_and_grad without its blocking read: (partial, finish, v_rendered).
 
-    partial: the device sums [slots * RED_GROUPS] float32 the loss is made of; finish(host copy of
+    partial: the device partial sums (float32) the loss is made of; finish(host copy of
     partial) -> the loss (float).  The trainer reads partial back with the step's other scalars.
     """
     _check(rendered, "rendered")
@@ -335,31 +434,40 @@ def diff_loss_and_grad_deferred(rt, d: cla.Array, q: int, levels: int, weights: 
     lam = [float(w) for w in weights]
     if len(lam) != 4:
         raise ValueError("weights must be the four lambdas (LL, LH, HL, HH)")
-    coeffs = decompose(rt, _as_hwc(d), q, levels)
-    slots = len(coeffs) * len(BANDS)
-    partial = _empty(rt, (slots * RED_GROUPS,))
-    local = min(RED_LOCAL, rt.max_work_group_size)
-    local = 1 << (local.bit_length() - 1)
-    red = rt.kernel(KFILE, "sumsq_partial")
-    scl = rt.kernel(KFILE, "scale_masked")
-    sizes = []
-    for j, bands in enumerate(coeffs):
-        for b, band in enumerate(BANDS):
-            x = bands[band]
-            slot = j * len(BANDS) + b
-            rt.launch(red, (RED_GROUPS * local,), (local,), x.data, np.int32(x.size), partial.data,
-                      np.int32(slot), cl.LocalMemory(4 * local))
-            sizes.append(x.size)
-            # cotangent of the band, in place: 2 lambda / n * coefficient
-            _launch(rt, scl, x.size, x.data, x.data, np.float32(2.0 * lam[b] / x.size),
-                    np.int32(x.size), np.int32(1), np.int32(0))
-    v = decompose_bwd(rt, coeffs, (H, W, C), q)
+    # a band is computed only where it counts: a weight, or LL feeding the next level
+    plans = [LevelPlan([b for i, b in enumerate(BANDS) if lam[i] != 0 or (b == "LL" and j < levels - 1)])
+             for j in range(int(levels))] if any(lam) else []
+    if not plans:
+        partial = _empty(rt, (1,))
+        partial.fill(0)
+        v = _empty(rt, (H, W, C))
+        v.fill(0)
+        return partial, lambda host_partial: 0.0, v
+    stacks, cur = [], _as_hwc(d)
+    for plan in plans:
+        stacks.append(decompose_level_stack(rt, cur, q, plan))
+        cur = stacks[-1][0]
+    red = rt.kernel(KFILE, "sumsq_scale", [f"-DRED_CHUNK={RED_CHUNK}"])
+    chunks = [-(-int(st[0].size) // RED_CHUNK) for st in stacks]
+    partial = _empty(rt, (sum(c * len(p.bands) for c, p in zip(chunks, plans)),))
+    terms = []   # (lambda, band size, first partial sum, partial sums) per band
+    for plan, stack, nc in zip(plans, stacks, chunks):
+        m, base = int(stack[0].size), sum(t[3] for t in terms)
+        # the band's squares summed, and the band made its cotangent in place: 2 lambda / n * coefficient
+        scales = [2.0 * lam[BANDS.index(b)] / m for b in plan.bands] + [0.0] * (4 - len(plan.bands))
+        rt.launch(red, (nc, len(plan.bands)), None, stack.data, np.int32(m), partial.data, np.int32(base),
+                  *(np.float32(x) for x in scales))
+        terms += [(lam[BANDS.index(b)], m, base + i * nc, nc) for i, b in enumerate(plan.bands)]
+    for j in range(len(plans) - 1, 0, -1):     # adds into the LL slot of the level above
+        sh = stacks[j - 1].shape
+        decompose_level_stack_bwd(rt, stacks[j], sh[1:], q, plans[j], out=stacks[j - 1][0], accumulate=True)
+    v = decompose_level_stack_bwd(rt, stacks[0], (H, W, C), q, plans[0])
 
     def finish(host_partial: np.ndarray) -> float:
-        sums = np.asarray(host_partial).astype(np.float64).reshape(slots, RED_GROUPS).sum(axis=1)
+        host = np.asarray(host_partial).astype(np.float64)
         loss = 0.0
-        for s_i, (sq, n) in enumerate(zip(sums, sizes)):
-            loss += lam[s_i % len(BANDS)] * sq / n
+        for lam_b, n, first, count in terms:
+            loss += lam_b * host[first:first + count].sum() / n
         return float(loss)
 
     return partial, finish, v
