@@ -28,13 +28,23 @@ __kernel void atomic_sum_f32(__global const float *x, const int n, volatile __gl
     if (l == 0) atomic_add_global_f(out, scratch[0]);
 }
 
-/* flag[0] |= 1 if any of x[0..n) is NaN or +-Inf (the training step's divergence guard).  Work-item
- * i checks elements [NF_RUN i, NF_RUN (i + 1)) (the last run may be shorter), 8 at a time: a float
- * is NaN or Inf exactly when its exponent bits are all set (a bit test: isfinite is an out-of-line
- * call on PoCL).  One atomic per work-item that found one. */
+/* flag[0] |= 1 if any element of the arrays x0 .. x7 (n0 .. n7 elements; n = 0 for an unused slot)
+ * is NaN or +-Inf (the training step's divergence guard, one launch for all the step's gradients).
+ * Work-item (i, a) checks elements [NF_RUN i, NF_RUN (i + 1)) of array a (the last run may be
+ * shorter), 8 at a time: a float is NaN or Inf exactly when its exponent bits are all set (a bit
+ * test: isfinite is an out-of-line call on PoCL).  One atomic per work-item that found one. */
 #ifdef NF_RUN   /* built with -DNF_RUN (ops/util.py NONFINITE_RUN) */
 #define EXP_MASK 0x7f800000
-__kernel void any_nonfinite_f32(__global const float *x, const int n, volatile __global int *flag) {
+__kernel void any_nonfinite_f32(__global const float *x0, const int n0, __global const float *x1, const int n1,
+                                __global const float *x2, const int n2, __global const float *x3, const int n3,
+                                __global const float *x4, const int n4, __global const float *x5, const int n5,
+                                __global const float *x6, const int n6, __global const float *x7, const int n7,
+                                volatile __global int *flag) {
+    const int a = get_global_id(1);
+    __global const float *x = a == 0 ? x0 : a == 1 ? x1 : a == 2 ? x2 : a == 3 ? x3
+                            : a == 4 ? x4 : a == 5 ? x5 : a == 6 ? x6 : x7;
+    const int n = a == 0 ? n0 : a == 1 ? n1 : a == 2 ? n2 : a == 3 ? n3
+                : a == 4 ? n4 : a == 5 ? n5 : a == 6 ? n6 : n7;
     const int j0 = get_global_id(0) * NF_RUN;
     if (j0 >= n) return;
     int bad = 0;

@@ -35,6 +35,22 @@ def test_any_nonfinite_every_position(rt, pos, bad):
 
 
 @pytest.mark.oclgrind
+@pytest.mark.parametrize("where", [None, 0, 7, 8, 10])
+def test_any_nonfinite_over_many_arrays(rt, where):
+    """More arrays than one launch takes (NONFINITE_ARRAYS), of different sizes, empty ones among
+    them: a bad element in any one of them, the first, the last of a launch or of the next, is found."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import NONFINITE_ARRAYS, any_nonfinite
+    sizes = [300, 5, 0, 64, 1, 129, 0, 700, 3, 65, 2]
+    assert len(sizes) > NONFINITE_ARRAYS
+    xs = [np.random.default_rng(i).standard_normal(n).astype(np.float32) for i, n in enumerate(sizes)]
+    if where is not None:
+        xs[where][-1] = np.nan
+    assert any_nonfinite(rt, [cla.to_device(rt.queue, x) for x in xs]) == (where is not None)
+
+
+@pytest.mark.oclgrind
 def test_read_back_several_arrays_in_one_read(rt):
     """read_back returns every array as it is on the device: dtypes, shapes, odd byte sizes, an
     offset view, an empty array, and the NaN flag enqueued without a read."""

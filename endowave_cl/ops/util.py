@@ -7,6 +7,7 @@ import numpy as np
 
 WORK_GROUP = 128
 NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (-DNF_RUN of cl/util.cl)
+NONFINITE_ARRAYS = 8  # arrays per launch of any_nonfinite_f32 (its x0 .. x7)
 READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
 
@@ -27,11 +28,15 @@ def nonfinite_flag(rt, arrays, flag=None):
     if flag is None:
         flag = cla.zeros(rt.queue, (1,), np.int32)
     k = rt.kernel("util.cl", "any_nonfinite_f32", [f"-DNF_RUN={NONFINITE_RUN}"])
-    for a in arrays:
-        a = getattr(a, "factors", a)   # ShGradFactors
-        if a.size == 0:
-            continue
-        rt.launch_1d(k, -(-a.size // NONFINITE_RUN), WORK_GROUP, a.data, np.int32(a.size), flag.data)
+    arrays = [a for a in (getattr(a, "factors", a) for a in arrays) if a.size]   # ShGradFactors: its factors
+    for i in range(0, len(arrays), NONFINITE_ARRAYS):
+        part = arrays[i:i + NONFINITE_ARRAYS]
+        runs = max(-(-int(a.size) // NONFINITE_RUN) for a in part)
+        args = []
+        for j in range(NONFINITE_ARRAYS):   # unused slots: no elements (any buffer)
+            a = part[j] if j < len(part) else None
+            args += [part[0].data if a is None else a.data, np.int32(0 if a is None else a.size)]
+        rt.launch(k, (-(-runs // WORK_GROUP) * WORK_GROUP, len(part)), (WORK_GROUP, 1), *args, flag.data)
     return flag
 
 
