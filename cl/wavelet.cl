@@ -89,6 +89,55 @@ inline float conv_elem(__global const float *line, __global const float *f, int 
     return acc;
 }
 
+/* conv_elem for the 8 consecutive elements line[k .. k + 7] of one position x (a run that does not
+ * cross a position: inner >= 8): the same taps, source positions and order, so the same bits as 8
+ * calls of conv_elem, with one 8-wide load per tap.  The border runs of a column pass (inner = the
+ * image's row) take this path: R of every n positions at each end, which with scalar loads took as
+ * long as the whole interior of a 256-row image. */
+inline float8 conv_elem8(__global const float *line, __global const float *f, int flen, int n, int inner,
+                         int x, int zero_border) {
+    const int R = flen / 2;
+    float8 acc = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i) {
+        const int m = x - i + R;
+        if (zero_border) {
+            if (m >= 0 && m < n) acc += f[i] * load8(line + (size_t)m * inner);
+        } else {
+            acc += f[i] * load8(line + (size_t)reflect_idx(m, n) * inner);
+        }
+    }
+    return acc;
+}
+
+/* v_conv_elem (below) for the 8 consecutive elements line[k .. k + 7] of one position y: the same
+ * terms in the same order, one 8-wide load each. */
+inline float8 v_conv_elem8(__global const float *line, __global const float *f, int flen, int n, int inner,
+                           int y) {
+    const int R = flen / 2;
+    float8 acc = (float8)(0.0f);
+    const int lo = -R, hi = n - 1 + R;
+    if (n == 1) {
+        for (int m = lo; m <= hi; ++m)
+            for (int i = 0; i < flen; ++i) {
+                const int x = m + i - R;
+                if (x >= 0 && x < n) acc += f[i] * load8(line + (size_t)x * inner);
+            }
+        return acc;
+    }
+    const int P = 2 * (n - 1);
+    const int nres = (y == 0 || y == n - 1) ? 1 : 2;
+    for (int s = 0; s < nres; ++s) {
+        const int r = (s == 0) ? y : P - y;
+        int m = r - ((r - lo) / P) * P;
+        for (; m <= hi; m += P)
+            for (int i = 0; i < flen; ++i) {
+                const int x = m + i - R;
+                if (x >= 0 && x < n) acc += f[i] * load8(line + (size_t)x * inner);
+            }
+    }
+    return acc;
+}
+
 /* The stacked convolutions: input and output are stacks of equally shaped slots [outer, n, inner]
  * (slot = outer * n * inner floats), f a stack of filters [*, flen], and output slot t is a sum of
  * terms, each the convolution of one input slot with one filter:
@@ -141,6 +190,18 @@ __kernel void conv_axis(__global const float *in, __global float *out,
         }
         store8(out_o + xi0, acc);
 #endif
+    } else if (xi0 - (xi0 / inner) * inner + CONV_RUN <= inner) {
+        /* a border run within one position x (a column pass): 8 elements at a time */
+        const int x = xi0 / inner, k0 = xi0 - x * inner;
+        for (int h = 0; h < CONV_RUN; h += 8) {
+            float8 acc = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                const float8 e = conv_elem8(in + TERM_SRC(tt, c) * slot + (size_t)o * len + k0 + h,
+                                            f + TERM_FILTER(tt, c) * flen, flen, n, inner, x, zero_border);
+                acc = c ? acc + e : e;
+            }
+            store8(out_o + xi0 + h, acc);
+        }
     } else {
         const int end = xi0 + CONV_RUN < len ? xi0 + CONV_RUN : len;
         for (int xi = xi0; xi < end; ++xi) {
@@ -240,6 +301,19 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
         if (accumulate) acc += load8(vi + yi0);
         store8(vi + yi0, acc);
 #endif
+    } else if (yi0 - (yi0 / inner) * inner + CONV_RUN <= inner) {
+        /* a border run within one position y (a column pass): 8 elements at a time */
+        const int y = yi0 / inner, k0 = yi0 - y * inner;
+        for (int h = 0; h < CONV_RUN; h += 8) {
+            float8 acc = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                const float8 e = v_conv_elem8(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len + k0 + h,
+                                              f + TERM_FILTER(tt, c) * flen, flen, n, inner, y);
+                acc = c ? acc + e : e;
+            }
+            if (accumulate) acc += load8(vi + yi0 + h);
+            store8(vi + yi0 + h, acc);
+        }
     } else {
         const int end = yi0 + CONV_RUN < len ? yi0 + CONV_RUN : len;
         for (int yi = yi0; yi < end; ++yi) {

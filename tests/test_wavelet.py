@@ -26,10 +26,13 @@ def dot(a, b):
 
 # (shape, axis): short axes (n < R, n = 1, 2) exercise the repeated reflection; the longer ones
 # the kernels' 8- and 16-element interior runs (CONV_RUN), with line lengths n * inner that are not
-# multiples of 8 or 16 (runs that end early) and inner = 1 (a run spans 8 or 16 positions of the axis)
+# multiples of 8 or 16 (runs that end early) and inner = 1 (a run spans 8 or 16 positions of the axis);
+# inner >= 8 or 16 along axis 0 the 8-wide border runs within one position (n = 1 and 2 included),
+# and inner = 37 runs that cross a position
 CONV_CASES = [((5, 7, 3), 1), ((5, 7, 3), 0), ((1, 9, 2), 1), ((3, 2, 1), 1), ((2, 4, 3), 0),
               ((33, 21, 3), 1), ((33, 21, 3), 0), ((17,), 0), ((6, 5, 4, 2), 2),
-              ((7, 41, 5), 1), ((45, 13, 3), 0), ((3, 61), 1), ((70,), 0)]
+              ((7, 41, 5), 1), ((45, 13, 3), 0), ((3, 61), 1), ((70,), 0),
+              ((1, 40), 0), ((2, 16, 2), 0), ((19, 37, 1), 0)]
 
 
 @pytest.fixture(params=[ops.CONV_RUN_GPU, ops.CONV_RUN_CPU], ids=lambda r: f"run{r}")

@@ -197,7 +197,8 @@ def test_oclgrind_loss_and_grad_with_mask_13x11x3(rt):
 @pytest.mark.oclgrind
 def test_oclgrind_short_axes_reflect_repeatedly(rt):
     # n = 1, 2, 3 < R: every reflection branch of conv_axis / conv_axis_bwd, plus resampling
-    for shape, axis in (((3, 2, 2), 1), ((3, 2, 2), 0), ((1, 2, 1), 0)):
+    # (3, 8, 2) and (1, 8, 2) along axis 0: 16 elements per position, the 8-wide border runs
+    for shape, axis in (((3, 2, 2), 1), ((3, 2, 2), 0), ((1, 2, 1), 0), ((3, 8, 2), 0), ((1, 8, 2), 0)):
         x = np.random.default_rng(axis).standard_normal(shape).astype(np.float32)
         y = np.random.default_rng(axis + 5).standard_normal(shape).astype(np.float32)
         f = np.random.default_rng(7).standard_normal(13).astype(np.float32)
