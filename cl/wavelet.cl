@@ -21,9 +21,12 @@
 #define RQ 2
 #endif
 
-/* Whole-sample symmetric reflection of position m into [0, n): -1 -> 1, n -> n - 2, repeated. */
+/* Whole-sample symmetric reflection of position m into [0, n): -1 -> 1, n -> n - 2, repeated.
+ * One reflection (|m| < n, m < 2 n - 1: every border tap of an axis longer than the filter's
+ * radius) without the integer division, which PoCL runs per tap of every border element. */
 inline int reflect_idx(int m, int n) {
     if (n == 1) return 0;
+    if (m > -n && m < 2 * n - 1) return m < 0 ? -m : (m < n ? m : 2 * (n - 1) - m);
     int period = 2 * (n - 1);
     int r = m % period;
     if (r < 0) r += period;
