@@ -112,6 +112,32 @@ inline float8 conv_elem8(__global const float *line, __global const float *f, in
     return acc;
 }
 
+/* conv_elem for the 8 consecutive flat elements xi .. xi + 7 of a line (line = &in[o, 0, 0]) that
+ * may span positions (a row pass: inner < 8), for an axis longer than the filter's radius (n > R: one
+ * reflection at most): per tap, the 8 source indices as a vector, the values gathered.  The same
+ * taps in the same order as conv_elem; a zero-border tap outside [0, n) adds 0 where conv_elem
+ * skips it (the same value, up to the sign of a zero sum). */
+inline float8 conv_gather8(__global const float *line, __global const float *f, int flen, int n, int inner,
+                           int xi, int zero_border) {
+    const int R = flen / 2;
+    const int8 e = (int8)(xi) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const int8 x = e / inner;
+    const int8 k = e - x * inner;
+    float8 acc = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i) {
+        int8 m = x + (R - i);
+        const int8 inside = (m >= 0) & (m < n);
+        m = m < 0 ? -m : m;                       /* reflect (zero border: masked out below) */
+        m = m >= n ? (int8)(2 * (n - 1)) - m : m;
+        const int8 src = m * inner + k;
+        float8 v = (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
+                            line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
+        if (zero_border) v = inside != 0 ? v : (float8)(0.0f);
+        acc += f[i] * v;
+    }
+    return acc;
+}
+
 /* v_conv_elem (below) for the 8 consecutive elements line[k .. k + 7] of one position y: the same
  * terms in the same order, one 8-wide load each. */
 inline float8 v_conv_elem8(__global const float *line, __global const float *f, int flen, int n, int inner,
@@ -201,6 +227,17 @@ __kernel void conv_axis(__global const float *in, __global float *out,
             for (int c = 0; c < nterm; ++c) {
                 const float8 e = conv_elem8(in + TERM_SRC(tt, c) * slot + (size_t)o * len + k0 + h,
                                             f + TERM_FILTER(tt, c) * flen, flen, n, inner, x, zero_border);
+                acc = c ? acc + e : e;
+            }
+            store8(out_o + xi0 + h, acc);
+        }
+    } else if (xi0 + CONV_RUN <= len && n > R) {
+        /* a border run across positions (a row pass): 8 elements at a time, gathered */
+        for (int h = 0; h < CONV_RUN; h += 8) {
+            float8 acc = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                const float8 e = conv_gather8(in + TERM_SRC(tt, c) * slot + (size_t)o * len,
+                                              f + TERM_FILTER(tt, c) * flen, flen, n, inner, xi0 + h, zero_border);
                 acc = c ? acc + e : e;
             }
             store8(out_o + xi0 + h, acc);
