@@ -125,14 +125,14 @@ inline float8 conv_gather8(__global const float *line, __global const float *f, 
     const int8 k = e - x * inner;
     float8 acc = (float8)(0.0f);
     for (int i = 0; i < flen; ++i) {
-        int8 m = x + (R - i);
-        const int8 inside = (m >= 0) & (m < n);
-        m = m < 0 ? -m : m;                       /* reflect (zero border: masked out below) */
-        m = m >= n ? (int8)(2 * (n - 1)) - m : m;
+        int8 m = x + (int8)(R - i);
+        const int8 inside = (m >= (int8)(0)) & (m < (int8)(n));
+        m = select(m, -m, m < (int8)(0));          /* reflect (zero border: masked out below) */
+        m = select(m, (int8)(2 * (n - 1)) - m, m >= (int8)(n));
         const int8 src = m * inner + k;
         float8 v = (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
                             line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
-        if (zero_border) v = inside != 0 ? v : (float8)(0.0f);
+        if (zero_border) v = select((float8)(0.0f), v, inside);
         acc += f[i] * v;
     }
     return acc;
@@ -292,6 +292,38 @@ inline float v_conv_elem(__global const float *line, __global const float *f, in
     return acc;
 }
 
+/* v_conv_elem for the 8 consecutive flat elements yi .. yi + 7 of a line (line = &v_out[o, 0, 0])
+ * that may span positions (a row pass: inner < 8), for an axis longer than the filter (n > 2 R + 1:
+ * a position y has the padded position y itself and at most one reflection of it, -y when
+ * y <= R, 2 (n - 1) - y when y >= n - 1 - R).  The same terms in the same order as v_conv_elem (y's
+ * own taps, then the reflection's), the values gathered; a term that v_conv_elem skips adds 0.
+ * The per-lane choices use select(): written as vector ?: this function computed wrong values on
+ * Oclgrind 21.10 (right ones on PoCL). */
+inline float8 v_conv_gather8(__global const float *line, __global const float *f, int flen, int n, int inner,
+                             int yi) {
+    const int R = flen / 2;
+    const int8 e = (int8)(yi) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const int8 y = e / inner;
+    const int8 k = e - y * inner;
+    const int8 m2 = select((int8)(2 * (n - 1)) - y, -y, y <= (int8)(R));     /* the reflection */
+    const int8 has2 = (y != (int8)(0)) & (y != (int8)(n - 1)) & ((y <= (int8)(R)) | (y >= (int8)(n - 1 - R)));
+    float8 acc = (float8)(0.0f);
+    for (int pass = 0; pass < 2; ++pass) {
+        const int8 m = pass ? m2 : y;
+        const int8 on = pass ? has2 : (int8)(-1);
+        for (int i = 0; i < flen; ++i) {
+            const int8 x = m + (int8)(i - R);
+            const int8 use = on & (x >= (int8)(0)) & (x < (int8)(n));
+            const int8 src = select((int8)(0), x, use) * inner + k;
+            float8 v = (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
+                                line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
+            v = select((float8)(0.0f), v, use);
+            acc += f[i] * v;
+        }
+    }
+    return acc;
+}
+
 /* Adjoint of conv_axis, with the same term table read the other way: output slot t of conv_axis_bwd
  * is the sum over its terms (s, g) of the adjoint of convolving with f[g], applied to v_out slot s.
  * For one term: v_in[o, y, k] (+)= sum over padded positions m in [-R, n - 1 + R] with
@@ -349,6 +381,18 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
             for (int c = 0; c < nterm; ++c) {
                 const float8 e = v_conv_elem8(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len + k0 + h,
                                               f + TERM_FILTER(tt, c) * flen, flen, n, inner, y);
+                acc = c ? acc + e : e;
+            }
+            if (accumulate) acc += load8(vi + yi0 + h);
+            store8(vi + yi0 + h, acc);
+        }
+    } else if (yi0 + CONV_RUN <= len && n > 2 * R + 1) {
+        /* a border run across positions (a row pass): 8 elements at a time, gathered */
+        for (int h = 0; h < CONV_RUN; h += 8) {
+            float8 acc = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                const float8 e = v_conv_gather8(v_out + TERM_SRC(tt, c) * slot + (size_t)o * len,
+                                                f + TERM_FILTER(tt, c) * flen, flen, n, inner, yi0 + h);
                 acc = c ? acc + e : e;
             }
             if (accumulate) acc += load8(vi + yi0 + h);
