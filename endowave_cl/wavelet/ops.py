@@ -142,6 +142,26 @@ def _stack_axis(x: cla.Array, axis: int) -> Tuple[int, int, int, int]:
     return int(x.shape[0]), outer, n, inner
 
 
+def _conv_stack(rt, kname: str, x: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array],
+                flag: bool) -> cla.Array:
+    """One launch of cl/wavelet.cl conv_axis or conv_axis_bwd over the stack x (flag: the zero
+    border of the one, accumulate of the other)."""
+    farr, nf, flen = _filter_stack(rt, f)
+    slots, outer, n, inner = _stack_axis(x, axis)
+    table, stride = _terms_table(rt, terms, slots, nf)
+    shape = (len(terms),) + tuple(x.shape[1:])
+    out = _empty(rt, shape) if out is None else out
+    if tuple(out.shape) != shape:
+        raise ValueError(f"out must be {shape}, got {out.shape}")
+    run = conv_run(rt)
+    items = -(-max(n * inner, 1) // run)
+    rt.launch(rt.kernel(KFILE, kname, [f"-DCONV_RUN={run}"]),
+              (round_up(items, GROUP), max(outer, 1), len(terms)), None, x.data, out.data, farr.data,
+              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(flag)),
+              table.data, np.int32(stride))
+    return out
+
+
 def conv_axis_stack(rt, x: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array] = None,
                     border: str = "reflect") -> cla.Array:
     """out[t] = sum over the terms (s, g) of t of the convolution of x[s] with f[g] along axis.
@@ -152,20 +172,7 @@ def conv_axis_stack(rt, x: cla.Array, f, terms: Terms, axis: int, out: Optional[
     _check(x, "x")
     if border not in BORDERS:
         raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
-    farr, nf, flen = _filter_stack(rt, f)
-    slots, outer, n, inner = _stack_axis(x, axis)
-    table, stride = _terms_table(rt, terms, slots, nf)
-    shape = (len(terms),) + tuple(x.shape[1:])
-    out = _empty(rt, shape) if out is None else out
-    if tuple(out.shape) != shape:
-        raise ValueError(f"out must be {shape}, got {out.shape}")
-    run = conv_run(rt)
-    items = -(-max(n * inner, 1) // run)
-    rt.launch(rt.kernel(KFILE, "conv_axis", [f"-DCONV_RUN={run}"]),
-              (round_up(items, GROUP), max(outer, 1), len(terms)), None, x.data, out.data, farr.data,
-              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(border == "zero"),
-              table.data, np.int32(stride))
-    return out
+    return _conv_stack(rt, "conv_axis", x, f, terms, axis, out, border == "zero")
 
 
 def conv_axis_stack_bwd(rt, v_out: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array] = None,
@@ -173,23 +180,9 @@ def conv_axis_stack_bwd(rt, v_out: cla.Array, f, terms: Terms, axis: int, out: O
     """Adjoint of conv_axis_stack with the same terms, read the other way: out[t] (+)= sum over the
     terms (s, g) of t of the adjoint of convolving with f[g], applied to v_out[s] (reflect border)."""
     _check(v_out, "v_out")
-    farr, nf, flen = _filter_stack(rt, f)
-    slots, outer, n, inner = _stack_axis(v_out, axis)
-    table, stride = _terms_table(rt, terms, slots, nf)
-    shape = (len(terms),) + tuple(v_out.shape[1:])
-    if out is None:
-        if accumulate:
-            raise ValueError("accumulate needs out")
-        out = _empty(rt, shape)
-    if tuple(out.shape) != shape:
-        raise ValueError(f"out must be {shape}, got {out.shape}")
-    run = conv_run(rt)
-    items = -(-max(n * inner, 1) // run)
-    rt.launch(rt.kernel(KFILE, "conv_axis_bwd", [f"-DCONV_RUN={run}"]),
-              (round_up(items, GROUP), max(outer, 1), len(terms)), None, v_out.data, out.data, farr.data,
-              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(accumulate)),
-              table.data, np.int32(stride))
-    return out
+    if out is None and accumulate:
+        raise ValueError("accumulate needs out")
+    return _conv_stack(rt, "conv_axis_bwd", v_out, f, terms, axis, out, accumulate)
 
 
 def _one(x: Optional[cla.Array]) -> Optional[cla.Array]:
