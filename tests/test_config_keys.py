@@ -320,7 +320,7 @@ def _lr_position_init(scene, rt, tmp_path):
 def _lr_position_final(scene, rt, tmp_path):
     c = TrainConfig(iterations=100, lr_position_final=5e-6)
     assert _lrs(c, 100)["means"] == pytest.approx(5e-6 * 2.0)
-    assert _lrs(TrainConfig(iterations=100), 100)["means"] == pytest.approx(1.6e-6 * 2.0)
+    assert _lrs(TrainConfig(iterations=100), 100)["means"] == pytest.approx(TrainConfig().lr_position_final * 2.0)
 
 
 def _lr_position_steps(scene, rt, tmp_path):

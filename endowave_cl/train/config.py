@@ -101,10 +101,12 @@ class TrainConfig:
                                     # fixed endoscope), else 3 (3DGS)
     temporal_freqs: int = 2
     # -- learning rates (Adam, eps 1e-15; see ops/adam.py) ----------------------------------------
-    lr_position_init: float = 1.6e-4   # x scene extent, decays log-linearly ...
-    lr_position_final: float = 1.6e-6  # ... to this (x extent) at lr_position_steps
+    lr_position_init: float = 6.4e-4   # x scene extent, decays log-linearly ...
+    lr_position_final: float = 6.4e-6  # ... to this (x extent) at lr_position_steps; both 4x
+                                        # 3DGS's 1.6e-4 / 1.6e-6: the Gaussians of a deforming
+                                        # scene move further (docs/QUALITY.md finding 15)
     lr_position_steps: int = 0          # 0: decay over `iterations`
-    lr_time: float = 1.6e-4             # t column of the means: the initial position lr, not
+    lr_time: float = 1.6e-4             # t column of the means: 3DGS's initial position lr, not
                                         # decayed and NOT times the extent (time is normalised to
                                         # [0, 1] whatever the scene's size)
     lr_features: float = 2.5e-3         # TEASH DC term sh[:, 0, 0, :]
