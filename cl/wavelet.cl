@@ -36,9 +36,12 @@ inline int reflect_idx(int m, int n) {
 /* The convolution kernels compute CONV_RUN consecutive elements of a line per work-item (a build
  * option, 8 or 16: endowave_cl/wavelet/ops.py conv_run chooses it per device): in the interior (no
  * reflection) each tap is then one or two 8-wide loads (load8, common.h) and multiply-adds for all
- * of them, the same operations in the same order as the per-element path, which serves the border
- * elements.  (With one element per work-item PoCL ran a serial chain of scalar multiply-adds; with
- * 16 each tap's value feeds two vectors and there are half as many work-items.) */
+ * of them, the same operations in the same order as the per-element path.  Runs at the border of
+ * the axis take 8-wide paths too (conv_elem8 / conv_gather8 and their adjoints, the same taps in
+ * the same order), the per-element path only what is left (a line's last, shorter run; axes
+ * shorter than the filter).  (With one element per work-item PoCL ran a serial chain of scalar
+ * multiply-adds; with 16 each tap's value feeds two vectors and there are half as many
+ * work-items.) */
 #ifndef CONV_RUN
 #define CONV_RUN 16
 #endif
