@@ -115,6 +115,12 @@ inline float8 conv_elem8(__global const float *line, __global const float *f, in
     return acc;
 }
 
+/* line[src.s0 .. src.s7] as one vector (the gathers of the row passes' border runs). */
+inline float8 gather8(__global const float *line, int8 src) {
+    return (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
+                    line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
+}
+
 /* conv_elem for the 8 consecutive flat elements xi .. xi + 7 of a line (line = &in[o, 0, 0]) that
  * may span positions (a row pass: inner < 8), for an axis longer than the filter's radius (n > R: one
  * reflection at most): per tap, the 8 source indices as a vector, the values gathered.  The same
@@ -133,8 +139,7 @@ inline float8 conv_gather8(__global const float *line, __global const float *f, 
         m = select(m, -m, m < (int8)(0));          /* reflect (zero border: masked out below) */
         m = select(m, (int8)(2 * (n - 1)) - m, m >= (int8)(n));
         const int8 src = m * inner + k;
-        float8 v = (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
-                            line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
+        float8 v = gather8(line, src);
         if (zero_border) v = select((float8)(0.0f), v, inside);
         acc += f[i] * v;
     }
@@ -318,8 +323,7 @@ inline float8 v_conv_gather8(__global const float *line, __global const float *f
             const int8 x = m + (int8)(i - R);
             const int8 use = on & (x >= (int8)(0)) & (x < (int8)(n));
             const int8 src = select((int8)(0), x, use) * inner + k;
-            float8 v = (float8)(line[src.s0], line[src.s1], line[src.s2], line[src.s3],
-                                line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
+            float8 v = gather8(line, src);
             v = select((float8)(0.0f), v, use);
             acc += f[i] * v;
         }
