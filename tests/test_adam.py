@@ -66,18 +66,20 @@ def test_adam_matches_reference_over_steps_with_changing_lrs(rt):
 
 
 def test_adam_frozen_lanes_inside_a_run(rt):
-    """sh_rest = 0 and means_t = 0 freeze some columns of a row: within a kernel's 8-element run
-    the frozen lanes keep their values while the others step."""
+    """sh_rest = 0, means_t = 0 and scales_t = 0 freeze some columns of a row: within a kernel's
+    8-element run the frozen lanes keep their values while the others step."""
     g = Gaussians.random(small(23, 3), seed=5)
 
     def sched(s):
-        return dict(LRS, sh_rest=0.0, means_t=0.0)
+        return dict(LRS, sh_rest=0.0, means_t=0.0, scales_t=0.0)
 
     dev, ref = _run_both(rt, g, steps=small(3, 2), lr_sched=sched)
     for n in PARAM_NAMES:
         np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
     sh0, sh = g.sh.reshape(len(g.sh), -1), dev["sh"].reshape(len(g.sh), -1)
     np.testing.assert_array_equal(sh[:, 3:], sh0[:, 3:])   # frozen: every coefficient but n = 0 DC
+    np.testing.assert_array_equal(dev["scales"][:, 3], g.scales[:, 3])
+    assert not np.array_equal(dev["scales"][:, :3], g.scales[:, :3])
     assert not np.array_equal(sh[:, :3], sh0[:, :3])
     np.testing.assert_array_equal(dev["means"][:, 3], g.means[:, 3])
     assert not np.array_equal(dev["means"][:, :3], g.means[:, :3])
@@ -190,8 +192,11 @@ def test_lr_layout_means_time_and_sh_dc():
     rest = np.ones(sh_shape, bool)
     rest[:, 0, 0, :] = False
     assert np.all(lr[rest] == np.float32(LRS["sh"] / 20))
-    # defaults: means_t falls back to the means lr
+    lr = element_lrs("scales", (5, 4), dict(LRS, scales_t=2e-2))
+    assert np.all(lr[:, :3] == np.float32(LRS["scales"])) and np.all(lr[:, 3] == np.float32(2e-2))
+    # defaults: means_t falls back to the means lr, scales_t to the scales lr
     assert group_lr_layout("means", (2, 4), {"means": 0.5})[3] == 0.5
+    assert group_lr_layout("scales", (2, 4), {"scales": 0.25})[1:] == (3, 0.25, 0.25)
     with pytest.raises(EndowaveError, match="opacity"):
         group_lr_layout("opacity", (3,), {"means": 1.0})
 

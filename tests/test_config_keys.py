@@ -337,7 +337,7 @@ def _lr_anneal_final(scene, rt, tmp_path):
     for s, factor in ((60, 1.0), (80, 0.2), (100, 0.04)):
         got = _lrs(c, s)
         assert got["means"] == base[s]["means"]
-        for g in ("means_t", "scales", "quat_l", "quat_r", "opacity", "sh", "sh_rest", "phase"):
+        for g in ("means_t", "scales", "scales_t", "quat_l", "quat_r", "opacity", "sh", "sh_rest", "phase"):
             assert got[g] == pytest.approx(factor * base[s][g], rel=1e-9), (s, g)
 
 
@@ -635,6 +635,7 @@ CHECKS = {
     "lr_features_rest_divisor": _lr_features_rest_divisor,
     "lr_opacity": _lr("lr_opacity", "opacity", 0.02),
     "lr_scales": _lr("lr_scales", "scales", 0.01),
+    "lr_scales_t": _lr("lr_scales_t", "scales_t", 0.02),
     "lr_rotation": _lr("lr_rotation", "quat_r", 0.003),
     "lr_phase": _lr("lr_phase", "phase", 0.01),
     "lr_anneal_final": _lr_anneal_final,

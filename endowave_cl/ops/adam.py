@@ -4,7 +4,10 @@ Learning rates (``lrs``), one float per key:
     means     x, y, z columns of means [N, 4] (the decayed position lr, see position_lr)
     means_t   t column of means (default: lrs["means"]); the trainer passes the initial
               position lr here, not decayed (DESIGN.md: "t as initial position lr")
-    scales, quat_l, quat_r, opacity, phase   one lr per group
+    scales    the first three log-stds of scales [N, 4] (the principal axes labelled x, y, z)
+    scales_t  the fourth (the axis labelled t, a Gaussian's lifetime before rotation; default:
+              lrs["scales"])
+    quat_l, quat_r, opacity, phase   one lr per group
     sh        the DC coefficient of the n = 0 temporal term, sh[:, 0, 0, :]
     sh_rest   every other TEASH coefficient (default: lrs["sh"] / SH_REST_DIVISOR), i.e.
               3DGS's "higher orders / 20" extended to the temporal terms n >= 1
@@ -32,6 +35,7 @@ ADAM_EPS = 1e-15          # 3DGS / 4DGS use 1e-15 instead of torch's 1e-8
 SH_REST_DIVISOR = 20.0    # 3DGS: feature_lr / 20 for every SH coefficient but the DC term
 SH_DC_ELEMENTS = 3        # sh[:, 0, 0, :] is the first 3 floats of a Gaussian's sh row
 MEANS_XYZ_COLUMNS = 3     # means[:, :3] spatial, means[:, 3] time
+SCALES_XYZ_COLUMNS = 3    # scales[:, :3] the axes labelled x, y, z, scales[:, 3] the one labelled t
 WORK_GROUP = 64
 ADAM_RUN = 8              # consecutive elements per work-item (ADAM_RUN in cl/adam.cl)
 MAX_ELEMENTS = 2 ** 31 - 1  # the kernel indexes with int
@@ -67,6 +71,9 @@ def group_lr_layout(name: str, shape: Tuple[int, ...], lrs: Mapping[str, float])
         if name == "means":
             lr = float(lrs["means"])
             return row, MEANS_XYZ_COLUMNS, lr, float(lrs.get("means_t", lr))
+        if name == "scales":
+            lr = float(lrs["scales"])
+            return row, SCALES_XYZ_COLUMNS, lr, float(lrs.get("scales_t", lr))
         if name == "sh":
             lr = float(lrs["sh"])
             return row, SH_DC_ELEMENTS, lr, float(lrs.get("sh_rest", lr / SH_REST_DIVISOR))

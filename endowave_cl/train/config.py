@@ -112,7 +112,8 @@ class TrainConfig:
     lr_features: float = 2.5e-3         # TEASH DC term sh[:, 0, 0, :]
     lr_features_rest_divisor: float = 20.0  # every other TEASH coefficient: lr_features / 20
     lr_opacity: float = 0.05
-    lr_scales: float = 5e-3
+    lr_scales: float = 5e-3             # log-stds of the principal axes labelled x, y, z
+    lr_scales_t: float = 5e-3           # log-std of the axis labelled t (a lifetime before rotation)
     lr_rotation: float = 1e-3           # both quaternions q_l, q_r
     lr_phase: float = 2.5e-3            # TEASH phases (radians); not in the paper: the feature lr,
                                         # since the phase is part of the appearance model
@@ -275,7 +276,7 @@ RANGES = {
     "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
-    "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
+    "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
     "lr_phase": _NON_NEGATIVE, "lr_anneal_final": _POSITIVE,
     "densify_from": _NON_NEGATIVE, "densify_every": _AT_LEAST_1, "densify_until": _NON_NEGATIVE,
     "densify_grad_threshold": _NON_NEGATIVE, "percent_dense": _NON_NEGATIVE, "split_children": _AT_LEAST_1,

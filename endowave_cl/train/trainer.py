@@ -116,7 +116,7 @@ class Trainer:
         return {
             "means": position_lr(step, steps, c.lr_position_init, c.lr_position_final, self.extent),
             "means_t": a * c.lr_time,
-            "scales": a * c.lr_scales, "quat_l": a * c.lr_rotation, "quat_r": a * c.lr_rotation,
+            "scales": a * c.lr_scales, "scales_t": a * c.lr_scales_t, "quat_l": a * c.lr_rotation, "quat_r": a * c.lr_rotation,
             "opacity": a * c.lr_opacity, "sh": a * c.lr_features,
             "sh_rest": a * c.lr_features / c.lr_features_rest_divisor, "phase": a * c.lr_phase,
         }
