@@ -573,6 +573,28 @@ def _between_two_flow(scene, rt, tmp_path):
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
 
 
+def _between_by_time(scene, rt, tmp_path):
+    """between_by_time: a training pair is drawn in proportion to the time it spans (here the pair
+    around the held-out frame 1 spans twice its neighbours' time); off: uniformly over the pairs."""
+    from endowave_cl.train.between import between_target
+    for by_time in (False, True):
+        tr = _trainer(scene, rt, tmp_path / str(by_time), iterations=0, between_prob=1.0, between_by_time=by_time)
+        pairs = tr._between.pairs
+        span = np.array([scene.frames[p.dst].time - scene.frames[p.src].time for p in pairs])
+        assert span.max() > 1.5 * span.min()                 # the scene's split gives unequal spans
+        if by_time:
+            np.testing.assert_allclose(tr._between.pair_prob, span / span.sum(), rtol=1e-12)
+        else:
+            assert tr._between.pair_prob is None
+        # the trainer's sampler draws exactly that pair and fraction from the same generator
+        rng = np.random.default_rng(7)
+        k = int(rng.choice(len(pairs), p=span / span.sum())) if by_time else int(rng.integers(len(pairs)))
+        s = float(rng.uniform(0.0, 1.0))
+        _, t, dev = tr._between.draw(np.random.default_rng(7))
+        want_img = between_target(scene, pairs[k], s, sampler=tr.cfg.between_sampler)[0]
+        np.testing.assert_allclose(dev.image.get(), want_img, atol=1e-6)
+
+
 def _between_sampler(scene, rt, tmp_path):
     """between_sampler: the drawn in-between target samples the frames with that sampler."""
     from endowave_cl.train.between import between_target
@@ -662,6 +684,7 @@ CHECKS = {
     "between_anneal_final": _between_anneal_final,
     "between_two_flow": _between_two_flow,
     "between_sampler": _between_sampler,
+    "between_by_time": _between_by_time,
     "between_flows": _between_flows,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),

@@ -112,15 +112,24 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
 
 
 class BetweenSampler:
-    """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair
-    uniformly, then s uniformly in (0, 1).  extra_flows: {k: FlowPair} of further estimators for
-    the same pairs, fused into every target (between_target's extra)."""
+    """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair,
+    then s uniformly in (0, 1).  The pair is drawn uniformly, or with by_time in proportion to the
+    time it spans, so that every moment of the sequence gets the same share of in-between steps
+    (where a held-out frame splits the training frames, the pair around it spans twice the time of
+    its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
+    into every target (between_target's extra)."""
 
     def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
-                 extra_flows: Sequence[Dict[int, object]] = ()):
+                 extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False):
         self.rt, self.scene, self.two_flow, self.sampler = rt, scene, two_flow, sampler
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
+        self.pair_prob = None                                                   # [P] or uniform
+        if by_time and self.pairs:
+            span = np.array([abs(float(scene.frames[p.dst].time) - float(scene.frames[p.src].time))
+                             for p in self.pairs], np.float64)
+            if span.sum() > 0:
+                self.pair_prob = span / span.sum()
 
     def extra(self, pair) -> List[object]:
         """The further estimators' FlowPairs of the pair's two frames."""
@@ -131,7 +140,10 @@ class BetweenSampler:
 
     def draw(self, rng: np.random.Generator):
         from .device_losses import prepare_targets
-        pair = self.pairs[int(rng.integers(len(self.pairs)))]
+        if self.pair_prob is None:
+            pair = self.pairs[int(rng.integers(len(self.pairs)))]
+        else:
+            pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
         s = float(rng.uniform(0.0, 1.0))
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair))
         if not weight.any():

@@ -78,6 +78,9 @@ class TrainConfig:
                                     # from 1 at densify_until to this at the last step (0: the run
                                     # ends on the training frames alone; 1: constant; 0.5: what
                                     # suits the real and the synthetic scenes, QUALITY.md finding 11)
+    between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
+                                    # time it spans (every moment of the sequence gets the same
+                                    # share) instead of uniformly over the pairs
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
                                     # two_flow_displacements) instead of each frame's own flow

@@ -104,7 +104,8 @@ class Trainer:
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
         self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
-                                       cfg.between_two_flow, cfg.between_sampler, self._load_between_flows())
+                                       cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
+                                       cfg.between_by_time)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
