@@ -49,7 +49,7 @@ inline void adam_element(__global float *p, const float gj, __global float *m, _
     const float vj = beta2 * v[j] + omb2 * gj * gj;
     m[j] = mj;
     v[j] = vj;
-    const float denom = sqrt(vj) * inv_sqrt_bc2 + eps;
+    const float denom = sqrt1(vj) * inv_sqrt_bc2 + eps;
     p[j] -= (lr * inv_bc1) * mj / denom;
 }
 
@@ -63,7 +63,7 @@ inline void adam_update8(__global float *p, const float8 gj, __global float *m, 
     const float8 m0 = load8(m + j0), v0 = load8(v + j0), p0 = load8(p + j0);
     const float8 mj = beta1 * m0 + omb1 * gj;
     const float8 vj = beta2 * v0 + omb2 * gj * gj;
-    const float8 denom = sqrt(vj) * inv_sqrt_bc2 + eps;
+    const float8 denom = sqrt8(vj) * inv_sqrt_bc2 + eps;
     const float8 pj = p0 - (lr * inv_bc1) * mj / denom;
     store8(m + j0, frozen ? m0 : mj);
     store8(v + j0, frozen ? v0 : vj);
@@ -127,14 +127,65 @@ inline void adam_sh_row(__global float *p, __global const float *fac, __global f
                      inv_sqrt_bc2);
 }
 
-/* group k given as factors: n##k / SH_NCOEF work-items, one per Gaussian */
+/* SH_GPW consecutive Gaussians per work-item, the fewest whose rows fill whole runs of ADAM_RUN
+ * (SH_GPW * SH_NCOEF a multiple of 8: 2 at degree 1, where a row is 36 floats; 1 at degree 3), so
+ * that the block is updated in aligned 8-wide runs with no element-by-element tail; degree 2 (81
+ * floats, a block of 648) keeps one Gaussian per work-item.  Mirrored by ops/adam.py sh_gaussians_per_item. */
+#define SH_GCD8 ((SH_NCOEF % 8 == 0) ? 8 : (SH_NCOEF % 4 == 0) ? 4 : (SH_NCOEF % 2 == 0) ? 2 : 1)
+#define SH_GPW ((8 / SH_GCD8) * SH_NCOEF <= 128 ? 8 / SH_GCD8 : 1)
+#define SH_BLOCK (SH_GPW * SH_NCOEF)
+
+/* Gaussians SH_GPW i .. SH_GPW i + SH_GPW - 1 of the sh group (nrows Gaussians): when all of them
+ * exist, their gradients from their factors (sh_grad_expand, the same products as adam_sh_row) and
+ * the block in runs of ADAM_RUN, each lane with its column's lr, 0 for a culled Gaussian's lanes
+ * (adam_update8 stores back their old values: the same result as leaving the row alone); the same
+ * operations per element as adam_sh_row.  A short last block: adam_sh_row per Gaussian. */
+inline void adam_sh_block(__global float *p, __global const float *fac, __global float *m,
+                          __global float *v, const int nrows, const int i, const int split,
+                          const float lra, const float lrb, const float beta1, const float beta2,
+                          const float omb1, const float omb2, const float eps, const float inv_bc1,
+                          const float inv_sqrt_bc2, __global const int *vis) {
+    const int g0 = SH_GPW * i;
+    if (SH_GPW == 1 || g0 + SH_GPW > nrows) {
+        for (int q = g0; q < min(g0 + SH_GPW, nrows); q++)
+            adam_sh_row(p, fac, m, v, q, split, lra, lrb, beta1, beta2, omb1, omb2, eps, inv_bc1,
+                        inv_sqrt_bc2, vis);
+        return;
+    }
+    int live[SH_GPW];
+    bool any = false;
+    for (int q = 0; q < SH_GPW; q++) {
+        live[q] = !(vis && vis[g0 + q] == 0);
+        any |= live[q] != 0;
+    }
+    if (!any) return;   /* every row culled: frozen */
+    float g[SH_BLOCK];
+    for (int q = 0; q < SH_GPW; q++) {
+        float fr[SHF_SIZE];
+        for (int e = 0; e < SHF_SIZE; ++e) fr[e] = live[q] ? fac[SHF_SIZE * (g0 + q) + e] : 0.0f;
+        sh_grad_expand(fr, g + q * SH_NCOEF);
+    }
+    const int j0 = SH_NCOEF * g0;
+    for (int c = 0; c < SH_BLOCK; c += ADAM_RUN) {
+        float lr_l[ADAM_RUN];
+        for (int l = 0; l < ADAM_RUN; l++) {
+            const int col = (c + l) % SH_NCOEF;
+            lr_l[l] = live[(c + l) / SH_NCOEF] ? (col < split ? lra : lrb) : 0.0f;
+        }
+        const float8 lr = (float8)(lr_l[0], lr_l[1], lr_l[2], lr_l[3], lr_l[4], lr_l[5], lr_l[6], lr_l[7]);
+        const float8 gj = (float8)(g[c], g[c + 1], g[c + 2], g[c + 3], g[c + 4], g[c + 5], g[c + 6], g[c + 7]);
+        adam_update8(p, gj, m, v, j0 + c, lr, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
+    }
+}
+
+/* group k given as factors: ceil(nrows / SH_GPW) work-items, SH_GPW Gaussians each */
 #define GROUP_DISPATCH_SH_FACTORS(k)                                                    \
-    if (i < n##k / SH_NCOEF) {                                                          \
-        adam_sh_row(p##k, g##k, m##k, v##k, i, split##k, lra##k, lrb##k, beta1, beta2,  \
-                    omb1, omb2, eps, inv_bc1, inv_sqrt_bc2, vis);                       \
+    if (i < (n##k / SH_NCOEF + SH_GPW - 1) / SH_GPW) {                                  \
+        adam_sh_block(p##k, g##k, m##k, v##k, n##k / SH_NCOEF, i, split##k, lra##k,     \
+                      lrb##k, beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2, vis); \
         return;                                                                         \
     }                                                                                   \
-    i -= n##k / SH_NCOEF;
+    i -= (n##k / SH_NCOEF + SH_GPW - 1) / SH_GPW;
 #endif
 
 __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(3),

@@ -20,6 +20,29 @@ inline void store8(__global float *p, float8 v) {
     p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
 }
 
+/* Where the runtime builds with -DHOST_CLANG=1 (DeviceCaps.host_clang: a driver that compiles
+ * kernels with clang for the host CPU, PoCL's CPU devices), clang's generic builtins are inline
+ * instructions there, while PoCL's own prefetch() does nothing and its sqrt is an out-of-line call
+ * (the caller's vectors spilled around it).  Elsewhere the OpenCL builtins.
+ *   PREFETCH(p)  a hint to bring the cache line at p closer (prefetcht0 on x86): gathers whose
+ *                addresses are known ahead;
+ *   sqrt1, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
+ *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
+ *                one vector instruction). */
+#if defined(HOST_CLANG) && HOST_CLANG
+#define PREFETCH(p) __builtin_prefetch(p)
+inline float sqrt1(float x) { return __builtin_sqrtf(x); }
+inline float8 sqrt8(float8 x) {
+    return (float8)(__builtin_sqrtf(x.s0), __builtin_sqrtf(x.s1), __builtin_sqrtf(x.s2),
+                    __builtin_sqrtf(x.s3), __builtin_sqrtf(x.s4), __builtin_sqrtf(x.s5),
+                    __builtin_sqrtf(x.s6), __builtin_sqrtf(x.s7));
+}
+#else
+#define PREFETCH(p) ((void)0)
+inline float sqrt1(float x) { return sqrt(x); }
+inline float8 sqrt8(float8 x) { return sqrt(x); }
+#endif
+
 /* Add v to a float in global memory.  Where the device has native float atomics
  * (cl_ext_float_atomics with global fp32 add; the runtime then builds with -cl-std=CL2.0 or CL3.0
  * and -DDEVICE_FLOAT_ATOMIC_ADD=1, see DeviceCaps in endowave_cl/runtime.py) this is one relaxed

@@ -240,7 +240,10 @@ class DeviceCaps:
     PoCL, whose work-items are loops that the explicit-SIMD kernels vectorise instead).
     float_atomic_add: cl_ext_float_atomics with global fp32 add and OpenCL C >= 2.0, so the
     adjoints' float adds can be native atomics (-DDEVICE_FLOAT_ATOMIC_ADD=1) instead of
-    compare-and-swap loops."""
+    compare-and-swap loops.
+    host_clang: the driver compiles kernels with clang for the host CPU (PoCL's CPU devices), so
+    clang's generic builtins (__builtin_prefetch, __builtin_sqrtf) are inline instructions there
+    (-DHOST_CLANG=1: cl/common.h PREFETCH, sqrt1 / sqrt8)."""
     max_work_group_size: int
     local_mem_size: int
     compute_units: int
@@ -248,6 +251,7 @@ class DeviceCaps:
     max_sub_groups: int
     float_atomic_add: bool
     opencl_c: Tuple[int, int]
+    host_clang: bool = False
 
     @property
     def simt(self) -> bool:
@@ -258,6 +262,8 @@ class DeviceCaps:
         opts = [f"-DDEVICE_SIMT_WIDTH={self.simt_width}"]
         if self.float_atomic_add:
             opts += ["-DDEVICE_FLOAT_ATOMIC_ADD=1"]
+        if self.host_clang:
+            opts += ["-DHOST_CLANG=1"]
         return opts
 
     @property
@@ -295,8 +301,14 @@ def query_caps(device) -> DeviceCaps:
     fadd = False
     if "cl_ext_float_atomics" in ext and cver >= (2, 0):
         fadd = bool(int(_query(device, _FP32_ATOMIC_CAPS_EXT, 0) or 0) & _FP_ATOMIC_GLOBAL_ADD_EXT)
+    # PoCL's CPU devices compile kernels with clang (LLVM) for the host CPU: there clang's generic
+    # builtins are inline instructions (cl/common.h PREFETCH, sqrt8), where PoCL's own prefetch()
+    # does nothing and its sqrt is an out-of-line call; other drivers need not know them
+    platform = str(getattr(getattr(device, "platform", None), "name", "") or "").lower()
+    cl = _cl()
+    host_clang = "portable computing language" in platform and bool(device.type & cl.device_type.CPU)
     return DeviceCaps(int(device.max_work_group_size), int(device.local_mem_size),
-                      int(device.max_compute_units), simt, max_sg, fadd, cver)
+                      int(device.max_compute_units), simt, max_sg, fadd, cver, host_clang)
 
 
 class Runtime:

@@ -179,3 +179,56 @@ def test_oclgrind_mode_catches_planted_out_of_bounds_write(tmp_path):
     subprocess.run([sys.executable, "-c", OOB_SCRIPT], env=env, check=True, timeout=300)
     report = log.read_text() if log.exists() else ""
     assert "Invalid write" in report, report
+
+
+def test_host_clang_only_for_pocl_cpu_devices(rt):
+    """-DHOST_CLANG=1 (clang builtins inline: cl/common.h PREFETCH, sqrt1 / sqrt8) only where PoCL
+    compiles for the host CPU; never under Oclgrind or on a GPU driver."""
+    cl = rt.cl
+    want = ("portable computing language" in rt.device.platform.name.lower()
+            and bool(rt.device.type & cl.device_type.CPU))
+    assert rt.caps.host_clang == want
+    assert ("-DHOST_CLANG=1" in rt.caps.build_options()) == want
+    if rt.is_oclgrind:
+        assert not rt.caps.host_clang
+
+
+_SQRT_SRC = """
+#include "common.h"
+__kernel void t_sqrt(__global const float *x, __global float *y1, __global float *y8, __global const float *p) {
+    const int i = get_global_id(0);
+    y1[i] = sqrt1(x[i]);
+    if (i % 8 == 0) {
+        const float8 v = (float8)(x[i], x[i + 1], x[i + 2], x[i + 3], x[i + 4], x[i + 5], x[i + 6], x[i + 7]);
+        const float8 r = sqrt8(v);
+        y8[i] = r.s0; y8[i + 1] = r.s1; y8[i + 2] = r.s2; y8[i + 3] = r.s3;
+        y8[i + 4] = r.s4; y8[i + 5] = r.s5; y8[i + 6] = r.s6; y8[i + 7] = r.s7;
+    }
+    PREFETCH(p + i);   /* a hint only: nothing to see, it must build and do nothing wrong */
+}
+"""
+
+
+@pytest.mark.oclgrind
+def test_common_sqrt_is_the_correctly_rounded_sqrt(rt):
+    """sqrt1 / sqrt8 (clang's builtin where HOST_CLANG, else sqrt) give numpy's IEEE square root
+    bit for bit: zeros, denormals, large values, infinity, negatives and NaN included."""
+    import pyopencl.array as cla
+    from conftest import small
+    rng = np.random.default_rng(0)
+    n = small(1 << 14, 64)
+    x = np.concatenate([rng.random(n // 4) * 1e-6, rng.random(n // 4) * 1e6,
+                        rng.random(n // 4).astype(np.float32) ** 3, np.exp(rng.uniform(-100, 85, n // 4))])
+    x = x.astype(np.float32)
+    x[:16] = [0.0, -0.0, 1e-45, 1e-40, np.inf, 1.0, 2.0, 3.0, 3.4e38, -1.0, np.nan, 1e-38, 5.0, 7.0, 0.25, 9.0]
+    q = rt.queue
+    xd = cla.to_device(q, x)
+    y1, y8 = cla.empty_like(xd), cla.empty_like(xd)
+    k = rt.program("common.h", source=_SQRT_SRC).t_sqrt
+    k(q, (n,), None, xd.data, y1.data, y8.data, xd.data)
+    with np.errstate(invalid="ignore"):
+        want = np.sqrt(x)
+    for got in (y1.get(), y8.get()):
+        nan = np.isnan(want)
+        assert np.array_equal(np.isnan(got), nan)
+        assert np.array_equal(got[~nan].view(np.uint32), want[~nan].view(np.uint32))

@@ -41,6 +41,13 @@ ADAM_RUN = 8              # consecutive elements per work-item (ADAM_RUN in cl/a
 MAX_ELEMENTS = 2 ** 31 - 1  # the kernel indexes with int
 
 
+def sh_gaussians_per_item(ncoef: int) -> int:
+    """Gaussians per work-item of Adam's factored sh group (SH_GPW in cl/adam.cl): the fewest whose
+    rows of ncoef floats fill whole runs of ADAM_RUN, when that block is at most 128 floats, else 1."""
+    gpw = ADAM_RUN // math.gcd(max(int(ncoef), 1), ADAM_RUN)
+    return gpw if gpw * ncoef <= 128 else 1
+
+
 def position_lr(step: int, max_steps: int, init: float = 1.6e-4, final: float = 1.6e-6,
                 extent: float = 1.0) -> float:
     """3DGS's exponential (log-linear) position lr schedule times the scene extent.
@@ -183,8 +190,8 @@ class DeviceAdam:
                      np.int32(count), np.int32(max(row, 1)), np.int32(split),
                      np.float32(lra), np.float32(lrb)]
             total += count
-            # a factored sh gradient: one work-item per Gaussian (cl/adam.cl adam_sh_row)
-            runs += count // row if factored else -(-count // ADAM_RUN)
+            # a factored sh gradient: sh_gaussians_per_item Gaussians per work-item (cl/adam.cl adam_sh_block)
+            runs += -(-(count // max(row, 1)) // sh_gaussians_per_item(row)) if factored else -(-count // ADAM_RUN)
         if total > MAX_ELEMENTS:
             raise EndowaveError(f"Adam: {total} parameters exceed the kernel's int index range")
         self.step_count = step
