@@ -232,6 +232,15 @@ P4_FN void p4_ld4(__global const float *p, P4Idx ix, p4f *out) {
 #define P4_FABS(x) as_floatV(as_intV(x) & 0x7fffffff)   /* fabs without a call (PoCL calls it) */
 #define P4_ISFINITE(x) (P4_FABS(x) < (p4f)(INFINITY))
 #define P4_EXP(x) p4v_exp(x)
+#if defined(HOST_CLANG) && HOST_CLANG
+/* sqrt lane by lane through clang's builtin, which the compiler joins into vector square roots
+ * inline (cl/common.h sqrt8); PoCL's sqrt of a floatV is an out-of-line call.  The same bits. */
+#define P4_SQRT_LANE(l, s) __builtin_sqrtf(x.s)
+P4_FN p4f p4v_sqrt(p4f x) { return (p4f)(P4_LIST(P4_SQRT_LANE)); }
+#define P4_SQRT(x) p4v_sqrt(x)
+#else
+#define P4_SQRT(x) sqrt(x)
+#endif
 
 #else   /* scalar: one Gaussian per work-item */
 typedef float p4f;
@@ -257,6 +266,7 @@ P4_FN void p4_ld4(__global const float *p, P4Idx i, float *out) {
 #define P4_FMIN(a, b) fmin(a, b)
 #define P4_ISFINITE(x) isfinite(x)
 #define P4_EXP(x) exp(x)
+#define P4_SQRT(x) sqrt(x)
 #endif
 
 #ifdef P4_VW
@@ -370,7 +380,7 @@ P4_FN void mat4_mul(const p4f *A, const p4f *B, p4f *C) {
 
 /* q (unnormalised) -> unit q; returns |q| (clamped) */
 P4_FN p4f quat_normalize(const p4f *q, p4f *u) {
-    p4f n = sqrt(P4_FMAX(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3], (p4f)(QUAT_NORM2_MIN)));
+    p4f n = P4_SQRT(P4_FMAX(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3], (p4f)(QUAT_NORM2_MIN)));
     for (int k = 0; k < 4; ++k) u[k] = q[k] / n;
     return n;
 }
@@ -526,14 +536,14 @@ P4_FN void p4_forward(const P4Cam *cam, __global const float *means, __global co
     return;
 #endif
     p4f mid = 0.5f * (s->a + s->c);
-    p4f lmax = mid + sqrt(P4_FMAX(mid * mid - s->det, (p4f)(0.0f)));
+    p4f lmax = mid + P4_SQRT(P4_FMAX(mid * mid - s->det, (p4f)(0.0f)));
     valid = valid & (s->det > 0.0f) & P4_ISFINITE(lmax) & P4_ISFINITE(s->conic[0]) & P4_ISFINITE(s->conic[1])
             & P4_ISFINITE(s->conic[2]) & P4_ISFINITE(s->means2d[0]) & P4_ISFINITE(s->means2d[1]);
     s->radius = 0.0f;
 #ifdef P4_VW
     /* every lane computes its radius and rect; culled lanes (whose values may be NaN) are zeroed by
      * the selects */
-    const p4f r = p4v_ceil_nonneg(3.0f * sqrt(P4_SEL(valid, lmax)));
+    const p4f r = p4v_ceil_nonneg(3.0f * P4_SQRT(P4_SEL(valid, lmax)));
     s->radius = P4_SEL(valid, P4_FMIN(r, (p4f)(RADIUS_MAX)));
     p4_tile_rect(s->means2d, r, r, valid, tiles_x, tiles_y, s->rect);
 #else
@@ -584,8 +594,8 @@ P4_FN void p4_tight_rect(P4State *s, p4f opac, int tiles_x, int tiles_y) {
     const p4f ratio = opac * (1.0f / ALPHA_MIN);
     const p4i reach = s->valid & (ratio >= TIGHT_OPAC_SLACK);
     const p4f q = 2.0f * P4_FMAX(p4_log_upper(P4_FMAX(ratio, (p4f)(1.0f))), (p4f)(0.0f)) + TIGHT_Q_PAD;
-    const p4f ex = P4_FMIN(sqrt(q * P4_FMAX(s->a, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
-    const p4f ey = P4_FMIN(sqrt(q * P4_FMAX(s->c, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
+    const p4f ex = P4_FMIN(P4_SQRT(q * P4_FMAX(s->a, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
+    const p4f ey = P4_FMIN(P4_SQRT(q * P4_FMAX(s->c, (p4f)(0.0f))) * TIGHT_SLACK + TIGHT_PAD, s->radius);
     p4_tile_rect(s->means2d, ex, ey, reach, tiles_x, tiles_y, s->rect);
 }
 #endif
@@ -630,7 +640,7 @@ P4_FN p4i p4_flow(const P4Cam *cam, const p4f *p2, const p4f *means2d, int tiles
 /* SH direction: normalize(mu_x|t - campos) */
 P4_FN void p4_view_dir(const P4Cam *cam, const P4State *s, p4f *d) {
     p4f v0 = s->mu[0] - cam->campos[0], v1 = s->mu[1] - cam->campos[1], v2 = s->mu[2] - cam->campos[2];
-    p4f n = sqrt(v0 * v0 + v1 * v1 + v2 * v2);
+    p4f n = P4_SQRT(v0 * v0 + v1 * v1 + v2 * v2);
     d[0] = v0 / n; d[1] = v1 / n; d[2] = v2 / n;
 }
 
