@@ -154,7 +154,7 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
             if (n2 <= flow_delta * flow_delta) {
                 sum[3] += n2 * w;
             } else {
-                const float n = sqrt(n2);
+                const float n = sqrt1(n2);
                 sum[3] += (2.0f * flow_delta * n - flow_delta * flow_delta) * w;
                 scale = 2.0f * flow_delta / n;
             }
@@ -164,12 +164,16 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
     }
     for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] = sum[k];
     barrier(CLK_LOCAL_MEM_FENCE);
-    for (int s = lsize / 2; s > 0; s >>= 1) {
-        if (lid < s)
-            for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] += scratch[k * lsize + lid + s];
-        barrier(CLK_LOCAL_MEM_FENCE);
+    /* Work-item k < NSUM sums term k's column with the pairwise tree (halves added element by
+     * element, s = lsize / 2 .. 1): the same additions in the same order as a tree over all
+     * work-items with a barrier per level, whose barriers cost more on PoCL (a pass of the
+     * work-item loop each) than the lsize - 1 additions done by one work-item. */
+    if (lid < NSUM) {
+        __local float *col = scratch + lid * lsize;
+        for (int s = lsize / 2; s > 0; s >>= 1)
+            for (int i = 0; i < s; i++) col[i] += col[i + s];
+        partial[get_group_id(0) * NSUM + lid] = col[0];
     }
-    if (lid < NSUM) partial[get_group_id(0) * NSUM + lid] = scratch[lid * lsize];
 }
 
 /* v_feat[p, c] += m (gb_mu + 2 x m gb_xx + y m gb_xy) for the colours: the SSIM gradient through

@@ -121,6 +121,11 @@ inline float8 gather8(__global const float *line, int8 src) {
                     line[src.s4], line[src.s5], line[src.s6], line[src.s7]);
 }
 
+/* select(a, b, c) for lane masks c of -1 / 0 (what vector comparisons give) as bit operations:
+ * the same lanes, where PoCL calls select out of line (a call per tap of a border run). */
+inline int8 sel_i8(int8 a, int8 b, int8 c) { return (b & c) | (a & ~c); }
+inline float8 sel_f8(float8 a, float8 b, int8 c) { return as_float8((as_int8(b) & c) | (as_int8(a) & ~c)); }
+
 /* conv_elem for the 8 consecutive flat elements xi .. xi + 7 of a line (line = &in[o, 0, 0]) that
  * may span positions (a row pass: inner < 8), for an axis longer than the filter's radius (n > R: one
  * reflection at most): per tap, the 8 source indices as a vector, the values gathered.  The same
@@ -136,11 +141,11 @@ inline float8 conv_gather8(__global const float *line, __global const float *f, 
     for (int i = 0; i < flen; ++i) {
         int8 m = x + (int8)(R - i);
         const int8 inside = (m >= (int8)(0)) & (m < (int8)(n));
-        m = select(m, -m, m < (int8)(0));          /* reflect (zero border: masked out below) */
-        m = select(m, (int8)(2 * (n - 1)) - m, m >= (int8)(n));
+        m = sel_i8(m, -m, m < (int8)(0));          /* reflect (zero border: masked out below) */
+        m = sel_i8(m, (int8)(2 * (n - 1)) - m, m >= (int8)(n));
         const int8 src = m * inner + k;
         float8 v = gather8(line, src);
-        if (zero_border) v = select((float8)(0.0f), v, inside);
+        if (zero_border) v = sel_f8((float8)(0.0f), v, inside);
         acc += f[i] * v;
     }
     return acc;
@@ -305,15 +310,15 @@ inline float v_conv_elem(__global const float *line, __global const float *f, in
  * a position y has the padded position y itself and at most one reflection of it, -y when
  * y <= R, 2 (n - 1) - y when y >= n - 1 - R).  The same terms in the same order as v_conv_elem (y's
  * own taps, then the reflection's), the values gathered; a term that v_conv_elem skips adds 0.
- * The per-lane choices use select(): written as vector ?: this function computed wrong values on
- * Oclgrind 21.10 (right ones on PoCL). */
+ * The per-lane choices are selects (sel_i8, sel_f8, bit operations): written as vector ?: this
+ * function computed wrong values on Oclgrind 21.10 (right ones on PoCL). */
 inline float8 v_conv_gather8(__global const float *line, __global const float *f, int flen, int n, int inner,
                              int yi) {
     const int R = flen / 2;
     const int8 e = (int8)(yi) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     const int8 y = e / inner;
     const int8 k = e - y * inner;
-    const int8 m2 = select((int8)(2 * (n - 1)) - y, -y, y <= (int8)(R));     /* the reflection */
+    const int8 m2 = sel_i8((int8)(2 * (n - 1)) - y, -y, y <= (int8)(R));     /* the reflection */
     const int8 has2 = (y != (int8)(0)) & (y != (int8)(n - 1)) & ((y <= (int8)(R)) | (y >= (int8)(n - 1 - R)));
     float8 acc = (float8)(0.0f);
     for (int pass = 0; pass < 2; ++pass) {
@@ -322,9 +327,9 @@ inline float8 v_conv_gather8(__global const float *line, __global const float *f
         for (int i = 0; i < flen; ++i) {
             const int8 x = m + (int8)(i - R);
             const int8 use = on & (x >= (int8)(0)) & (x < (int8)(n));
-            const int8 src = select((int8)(0), x, use) * inner + k;
+            const int8 src = sel_i8((int8)(0), x, use) * inner + k;
             float8 v = gather8(line, src);
-            v = select((float8)(0.0f), v, use);
+            v = sel_f8((float8)(0.0f), v, use);
             acc += f[i] * v;
         }
     }
@@ -447,9 +452,11 @@ inline int2 rs_targets(int i, int n_out) {
 
 /* The weight of output sample j in input sample i's adjoint, 0 when j is not one of its targets:
  * max(0, 1 - |j p - i q| / q).  |j p - i q| in float (exact for these small integers): the
- * integer abs is an out-of-line call on PoCL, and Oclgrind lacks the llvm.abs intrinsic it becomes. */
-#define RS_WEIGHT_OK(j, i) (fabs((float)((j) * RP - (i) * RQ)) < (float)RQ)
-#define RS_WEIGHT(j, i) (((float)RQ - fabs((float)((j) * RP - (i) * RQ))) / (float)RQ)
+ * integer abs is an out-of-line call on PoCL, and Oclgrind lacks the llvm.abs intrinsic it becomes;
+ * the float's |.| as a bit operation (fabs is an out-of-line call on PoCL too; the same value). */
+#define RS_ABS(x) as_float(as_int(x) & 0x7fffffff)
+#define RS_WEIGHT_OK(j, i) (RS_ABS((float)((j) * RP - (i) * RQ)) < (float)RQ)
+#define RS_WEIGHT(j, i) (((float)RQ - RS_ABS((float)((j) * RP - (i) * RQ))) / (float)RQ)
 
 /* Rational resampling by a = p / q = RP / RQ (linear interpolation at n_out * p / q):
  * out[o, j, k] = ((q - r) in[o, i0, k] + r in[o, i0 + 1, k]) / q,  j p = i0 q + r, 0 <= r < q.
