@@ -30,6 +30,7 @@ inline void store8(__global float *p, float8 v) {
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction). */
 #if defined(HOST_CLANG) && HOST_CLANG
+#define HAVE_PREFETCH 1   /* kernels leave out the loads that only compute prefetch addresses when 0 */
 #define PREFETCH(p) __builtin_prefetch(p)
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
 inline float8 sqrt8(float8 x) {
@@ -38,6 +39,7 @@ inline float8 sqrt8(float8 x) {
                     __builtin_sqrtf(x.s6), __builtin_sqrtf(x.s7));
 }
 #else
+#define HAVE_PREFETCH 0
 #define PREFETCH(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }
 inline float8 sqrt8(float8 x) { return sqrt(x); }

@@ -212,6 +212,7 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
 /* Deterministic mode, before the gather: entry_of[u] = k for the sorted entry k whose binning slot
  * (binned_slot in common.h) is u; entry_of must hold -1 on entry (slots with no sorted entry keep
  * it).  One work-item per tile walks its sorted entries. */
+#define ENTRY_AHEAD 16   /* entries between a prefetch and its use in rasterize_bwd_entry_of */
 __kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] */
                                      __global const int2 *tile_ranges,  /* [n_tiles] */
                                      const int n_tiles, const int tiles_x,
@@ -224,6 +225,13 @@ __kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] *
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int2 range = tile_ranges[t];
     for (int k = range.x; k < range.y; k++) {
+#if HAVE_PREFETCH
+        if (k + ENTRY_AHEAD < range.y) {   /* a later entry's Gaussian: its rect and offsets in flight */
+            const int ga = sorted_values[k + ENTRY_AHEAD];
+            PREFETCH(rect + ga);
+            PREFETCH(offsets + ga);
+        }
+#endif
         const int u = binned_slot(rect, offsets, sorted_values[k], tx, ty);
         if (u >= 0) entry_of[u] = k;
     }
@@ -233,6 +241,7 @@ __kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] *
  * backward pass stored for its entries (v_entry in sorted order), taken in g's binning order
  * offsets[g] .. offsets[g + 1] (its rect's tiles row-major, entry_of[u] the sorted entry of slot
  * u), and writes its gradients.  v_entry is zero where the backward pass had nothing for an entry. */
+#define GATHER_AHEAD 32  /* slots between a prefetch and its use in rasterize_bwd_gather */
 __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in sorted order */
                                    __global const int *entry_of,     /* [M] sorted entry of each slot */
                                    __global const int *offsets,      /* [N + 1] */
@@ -247,7 +256,20 @@ __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] i
     float sum[NV];
     for (int k = 0; k < NV; k++) sum[k] = 0.0f;
     const int end = offsets[g + 1];
+#if HAVE_PREFETCH
+    const int m_slots = offsets[n];
+#endif
     for (int u = offsets[g]; u < end; u++) {
+#if HAVE_PREFETCH
+        /* the rows a few slots ahead (the next Gaussians' slots follow): random reads in flight */
+        if (u + GATHER_AHEAD < m_slots) {
+            const int ea = entry_of[u + GATHER_AHEAD];
+            if (ea >= 0) {
+                PREFETCH(v_entry + ea * NV);
+                PREFETCH(v_entry + ea * NV + NV - 1);
+            }
+        }
+#endif
         const int e = entry_of[u];
         if (e < 0) continue;
         for (int k = 0; k < NV; k++) sum[k] += v_entry[e * NV + k];

@@ -148,6 +148,13 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
 
         const int base = range.x + b * FWD_BATCH;
         const int count = min(FWD_BATCH, range.y - base);
+#if HAVE_PREFETCH
+        for (int j = lid; j < count; j += N_WI) {   /* this work-item's records, all in flight */
+            __global const float4 *r = rec + sorted_values[base + j] * REC4;
+            PREFETCH(r);
+            PREFETCH(r + REC4 - 1);
+        }
+#endif
         for (int j = lid; j < count; j += N_WI)
             stage_gaussian(rec, sorted_values[base + j], j, l_mean, l_cop, l_feat, l_thr, l_box);
         barrier(CLK_LOCAL_MEM_FENCE);

@@ -89,6 +89,15 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     const int max_last = group_max_last(max_last_mine, lid, &l_max_last);   /* uniform */
     const int n_batches = (max_last + BATCH - 1) / BATCH;
 
+#if HAVE_PREFETCH
+    /* the first batch walked (the last one), whose records nothing else has asked for yet; each
+     * batch then asks for the next one's while it is staged (below) */
+    for (int j = max(n_batches - 1, 0) * BATCH + lid; j < max_last; j += N_WI) {
+        __global const float4 *r = rec + sorted_values[range.x + j] * REC4;
+        PREFETCH(r);
+        PREFETCH(r + REC4 - 1);
+    }
+#endif
     for (int b = n_batches - 1; b >= 0; b--) {
         const int base = range.x + b * BATCH;
         const int count = min(BATCH, max_last - b * BATCH);  /* entries of this batch to walk */
@@ -97,6 +106,14 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             l_gid[j] = g;
             stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
         }
+#if HAVE_PREFETCH
+        if (b > 0)   /* the next batch walked (b - 1, full): its records' two cache lines */
+            for (int j = lid; j < BATCH; j += N_WI) {
+                __global const float4 *r = rec + sorted_values[base - BATCH + j] * REC4;
+                PREFETCH(r);
+                PREFETCH(r + REC4 - 1);
+            }
+#endif
         barrier(CLK_LOCAL_MEM_FENCE);
 
         {   /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
@@ -181,4 +198,9 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         }
         barrier(CLK_LOCAL_MEM_FENCE);   /* the next batch overwrites the batch arrays, l_part4, l_wrote */
     }
+#if DETERMINISTIC
+    /* the entries past the walk (no pixel reaches them): zero terms, so that v_entry needs no fill */
+    for (int j = max_last + lid; j < range.y - range.x; j += N_WI)
+        for (int k = 0; k < NV; k++) v_entry[(range.x + j) * NV + k] = 0.0f;
+#endif
 }

@@ -395,6 +395,34 @@ def test_adjoint_deterministic_one_gaussian_many_tiles(rt, variant):
     assert all(np.all(got[k][1] == 0) for k in got)
 
 
+@pytest.mark.parametrize("case", [BWD_CASES[1], (6, 150, 40, 40, 6, (4.0, 12.0), (0.995, 1.0))])
+def test_adjoint_deterministic_rows_past_the_walk(rt, variant, case):
+    """Saturated pixels stop before their tile's list ends, so tiles hold entries past the walk
+    (past the largest `last`): the vector adjoint writes their per-entry rows as zeros itself (its
+    v_entry is not filled first), the scalar one gets a zero-filled array.  The memory pool's
+    blocks are poisoned with NaN first, so a row left unwritten would show."""
+    seed, n, w, h, C, sigma, op = case
+    sc = make_scene(seed, n, w, h, C, sigma, op)
+    _, r = run_fwd(rt, sc)
+    ranges = sc["tile_ranges"]
+    tiles_x, _ = tile_grid(w, h)
+    last = r.last.get()
+    walked = np.zeros(len(ranges), np.int64)
+    for y in range(h):
+        for x in range(w):
+            t = (y // 16) * tiles_x + x // 16
+            walked[t] = max(walked[t], last[y, x])
+    assert ((ranges[:, 1] - ranges[:, 0]) > walked).any()   # some tile has entries past its walk
+    M = int(ranges[:, 1].max())
+    for _ in range(3):   # poison what the pool will hand out for v_entry [M, 6 + C]
+        junk = cla.empty(rt.queue, (M, 6 + C), np.float32, allocator=rt.pool())
+        junk.fill(np.float32(np.nan))
+        rt.queue.finish()
+        del junk
+    got, ref = run_bwd(rt, sc, seed, deterministic=True)
+    check_bwd(got, ref)   # finite, and the reference's values
+
+
 @pytest.mark.oclgrind
 def test_adjoint_deterministic_tiny_oclgrind(rt, variant):
     skip_unless_fits(rt, variant, 9)

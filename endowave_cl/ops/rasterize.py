@@ -351,12 +351,17 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     if det and M == 0:
         return grads
     opts = _options(C) + [f"-DDETERMINISTIC={int(det)}"]
-    v_entry = cla.zeros(q, (M, 6 + C), np.float32, allocator=al) if det else None   # [M, NV] in binning order
+    # [M, NV] per sorted entry; the vector kernel writes every row (zeros past a tile's walk), the
+    # scalar one only those it walks
+    ch = choice or raster_choice(rt, C)
+    if det:
+        v_entry = (cla.empty if ch.variant == "vector" else cla.zeros)(q, (M, 6 + C), np.float32, allocator=al)
+    else:
+        v_entry = None
     rect, offsets = deterministic if det else (None, None)
     if det:
         assert rect.shape == (N, 4) and rect.dtype == np.int32, (rect.shape, rect.dtype)
         assert offsets.shape == (N + 1,) and offsets.dtype == np.int32, (offsets.shape, offsets.dtype)
-    ch = choice or raster_choice(rt, C)
     if ch.variant == "vector":
         batch = vec_bwd_batch(rt, C, ch.vw)
         _check_local(rt, vec_bwd_local_bytes(C, batch, ch.vw), "rasterize_bwd", C)
