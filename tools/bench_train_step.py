@@ -9,7 +9,7 @@ the median of as many Trainer.train_step calls (the step as training runs it: no
 the parts, its own read-backs and the NaN guard).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
-                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels]
+                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels [--top N]]
 
 --checkpoint takes the Gaussians of a trained model instead (a real run's count, and Gaussians that
 live only part of the sequence: most of them are culled at any one time), with fresh Adam moments.
@@ -54,6 +54,7 @@ def main(argv=None):
                     help="also print each part's summed kernel time (OpenCL event profiling of the "
                          "Runtime's launches) and the step's slowest kernels: wall time far above "
                          "kernel time means the host (launches, read-backs) is what the step waits for")
+    ap.add_argument("--top", type=int, default=8, help="how many of the slowest kernels --kernels prints")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
 
@@ -155,7 +156,7 @@ def main(argv=None):
             launches = sum(1 for _ in events)
             print(f"  kernel time: OpenCL events of the {launches} Runtime launches of the last step "
                   f"(pyopencl's fills and copies not counted); slowest kernels, median ms per step:")
-            top = sorted(kernels.items(), key=lambda kv: -statistics.median(kv[1]))[:8]
+            top = sorted(kernels.items(), key=lambda kv: -statistics.median(kv[1]))[:args.top]
             print("    " + ", ".join(f"{name} {statistics.median(ms):.2f}" for name, ms in top))
         print(f"  CPU time per step (all threads) {statistics.median(cpu) * 1e3:.1f} ms "
               f"(/ {os.cpu_count()} cores = {statistics.median(cpu) * 1e3 / (os.cpu_count() or 1):.1f} ms)")
