@@ -164,16 +164,26 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
     }
     for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] = sum[k];
     barrier(CLK_LOCAL_MEM_FENCE);
-    /* Work-item k < NSUM sums term k's column with the pairwise tree (halves added element by
-     * element, s = lsize / 2 .. 1): the same additions in the same order as a tree over all
-     * work-items with a barrier per level, whose barriers cost more on PoCL (a pass of the
-     * work-item loop each) than the lsize - 1 additions done by one work-item. */
+#if defined(DEVICE_SIMT_WIDTH) && DEVICE_SIMT_WIDTH > 1
+    /* the pairwise tree over the work-items, a barrier per level */
+    for (int s = lsize / 2; s > 0; s >>= 1) {
+        if (lid < s)
+            for (int k = 0; k < NSUM; k++) scratch[k * lsize + lid] += scratch[k * lsize + lid + s];
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (lid < NSUM) partial[get_group_id(0) * NSUM + lid] = scratch[lid * lsize];
+#else
+    /* Work-item k < NSUM sums term k's column with the same pairwise tree (halves added element
+     * by element, s = lsize / 2 .. 1): the same additions in the same order, so the same sums, as
+     * the tree over all work-items above, whose barriers cost more on a CPU driver (a pass of
+     * PoCL's work-item loop each) than the lsize - 1 additions done by one work-item. */
     if (lid < NSUM) {
         __local float *col = scratch + lid * lsize;
         for (int s = lsize / 2; s > 0; s >>= 1)
             for (int i = 0; i < s; i++) col[i] += col[i + s];
         partial[get_group_id(0) * NSUM + lid] = col[0];
     }
+#endif
 }
 
 /* v_feat[p, c] += m (gb_mu + 2 x m gb_xx + y m gb_xy) for the colours: the SSIM gradient through
