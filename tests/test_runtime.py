@@ -212,7 +212,7 @@ __kernel void t_sqrt(__global const float *x, __global float *y1, __global float
 @pytest.mark.oclgrind
 def test_common_sqrt_is_the_correctly_rounded_sqrt(rt):
     """sqrt1 / sqrt8 (clang's builtin where HOST_CLANG, else sqrt) give numpy's IEEE square root
-    bit for bit: zeros, denormals, large values, infinity, negatives and NaN included."""
+    bit for bit where HOST_CLANG (within OpenCL's 3 ulp elsewhere): zeros, denormals, large values, infinity, negatives and NaN included."""
     import pyopencl.array as cla
     from conftest import small
     rng = np.random.default_rng(0)
@@ -228,7 +228,16 @@ def test_common_sqrt_is_the_correctly_rounded_sqrt(rt):
     k(q, (n,), None, xd.data, y1.data, y8.data, xd.data)
     with np.errstate(invalid="ignore"):
         want = np.sqrt(x)
+    # clang's builtin is IEEE's correctly rounded sqrt; OpenCL's sqrt may be up to 3 ulp off
+    # (OpenCL C 1.2, 7.4: NVIDIA's driver gives 1-ulp differences), and denormals may be flushed
+    ulps = 0 if rt.caps.host_clang else 3
+    import pyopencl as cl
+    denorm_ok = bool(rt.device.single_fp_config & cl.device_fp_config.DENORM)
     for got in (y1.get(), y8.get()):
         nan = np.isnan(want)
         assert np.array_equal(np.isnan(got), nan)
-        assert np.array_equal(got[~nan].view(np.uint32), want[~nan].view(np.uint32))
+        keep = ~nan if denorm_ok or ulps == 0 else ~nan & ((x == 0) | (np.abs(x) >= np.finfo(np.float32).tiny))
+        diff = np.abs(got[keep].view(np.int32).astype(np.int64) - want[keep].view(np.int32).astype(np.int64))
+        assert diff.max() <= ulps, f"sqrt off by {diff.max()} ulp (allowed {ulps})"
+        special = keep & ((x == 0) | np.isinf(x))
+        assert np.array_equal(got[special].view(np.uint32), want[special].view(np.uint32))
