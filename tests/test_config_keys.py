@@ -573,6 +573,23 @@ def _between_two_flow(scene, rt, tmp_path):
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
 
 
+def _flow_anneal_final(scene, rt, tmp_path):
+    """flow_anneal_final: the flow losses' weights are the config's until densify_until, then fall
+    linearly to that fraction at the last step; at 0 the last step's loss has no flow term."""
+    tr = _trainer(scene, rt, tmp_path, iterations=100, densify_until=60, flow_anneal_final=0.2,
+                  lambda_flow=0.05, lambda_flow_gaussian=0.1)
+    for step, f in ((0, 1.0), (60, 1.0), (80, 0.6), (100, 0.2)):
+        c = tr.loss_config(step)
+        assert c.lambda_flow == pytest.approx(0.05 * f) and c.lambda_flow_gaussian == pytest.approx(0.1 * f)
+    assert tr.loss_config(10) is tr.cfg
+    tr = _trainer(scene, rt, tmp_path / "zero", iterations=3, densify_until=1, flow_anneal_final=0.0,
+                  use_flow=True)
+    k = scene.train_indices[0]
+    assert "flow" in tr.train_step(k)        # step 0: the full weight
+    tr.step = 3
+    assert "flow" not in tr.train_step(k)    # the last step: weight 0, no flow term
+
+
 def _between_by_time(scene, rt, tmp_path):
     """between_by_time: a training pair is drawn in proportion to the time it spans (here the pair
     around the held-out frame 1 spans twice its neighbours' time); off: uniformly over the pairs."""
@@ -685,6 +702,7 @@ CHECKS = {
     "between_two_flow": _between_two_flow,
     "between_sampler": _between_sampler,
     "between_by_time": _between_by_time,
+    "flow_anneal_final": _flow_anneal_final,
     "between_flows": _between_flows,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),

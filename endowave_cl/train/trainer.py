@@ -18,6 +18,7 @@ gradients' NaN / Inf flag), and the parameters only when densifying, checkpointi
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -45,6 +46,16 @@ def scene_extent(g: Gaussians) -> float:
         return 1.0
     xyz = g.means[:, :3].astype(np.float64)
     return float(max(1e-3, np.percentile(np.linalg.norm(xyz - xyz.mean(0), axis=1), 95) * 1.1))
+
+
+
+def late_factor(cfg, step: int, final: float) -> float:
+    """The late schedules' factor (in-between chance, flow losses' weight): 1 until
+    cfg.densify_until, then falling linearly to ``final`` at cfg.iterations."""
+    if step <= cfg.densify_until or cfg.iterations <= cfg.densify_until:
+        return 1.0
+    u = min((step - cfg.densify_until) / float(cfg.iterations - cfg.densify_until), 1.0)
+    return 1.0 - u * (1.0 - final)
 
 
 class Trainer:
@@ -125,11 +136,16 @@ class Trainer:
     def between_prob(self, step: int) -> float:
         """The chance that this step is an in-between one: between_prob until densify_until, then
         falling linearly to between_prob x between_anneal_final at the last step."""
+        return self.cfg.between_prob * late_factor(self.cfg, step, self.cfg.between_anneal_final)
+
+    def loss_config(self, step: int):
+        """The config the step's losses read: self.cfg, with the flow losses' weights (lambda_flow,
+        lambda_flow_gaussian) scaled by the flow anneal (flow_anneal_final) after densify_until."""
         c = self.cfg
-        if step <= c.densify_until or c.iterations <= c.densify_until:
-            return c.between_prob
-        u = min((step - c.densify_until) / float(c.iterations - c.densify_until), 1.0)
-        return c.between_prob * (1.0 - u * (1.0 - c.between_anneal_final))
+        f = late_factor(c, step, c.flow_anneal_final)
+        if f == 1.0:
+            return c
+        return dataclasses.replace(c, lambda_flow=c.lambda_flow * f, lambda_flow_gaussian=c.lambda_flow_gaussian * f)
 
     def _reset_stats(self):
         import pyopencl.array as cla
@@ -223,8 +239,9 @@ class Trainer:
         from .device_losses import gaussian_flow_enqueue, image_losses_enqueue
         dev = getattr(dev, "dev", dev)
         channels = {"depth": DEPTH, "flow": FLOW.start}
-        pending = image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config)
-        return gaussian_flow_enqueue(self.rt, out, dev, self.cfg, channels, pending)
+        cfg = self.loss_config(self.step)
+        pending = image_losses_enqueue(self.rt, out.features, dev, cfg, channels, self.wavelet_config)
+        return gaussian_flow_enqueue(self.rt, out, dev, cfg, channels, pending)
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
