@@ -11,7 +11,7 @@
  * exp_nonpos bit for bit), so the same Gaussians count as contributors.
  *
  * Reduction, without atomics in local memory and without a barrier per Gaussian: for each entry j
- * of the batch, each work-item whose lanes use it sums its lanes' NV gradient terms (vhsum4, a
+ * of the batch, each work-item whose lanes use it sums its lanes' NV gradient terms (lane_sum8, a
  * fixed order) and stores them as NSV float4 to its own slot l_part4[j][work-item], and marks bit j
  * of its mask l_wrote[work-item].  After the batch, one work-item per entry adds up the slots that
  * were written, in work-item order (float4 adds; no slot needs zeroing), and adds the totals to
@@ -37,6 +37,35 @@
 #endif
 #if BATCH > 32
 #error "a work-item's written-slot mask is one 32-bit word per batch"
+#endif
+
+/* The lane sums of a hit's gradient terms, in the order of vhsum4 (vexp.h) value for value, so the
+ * same bits: at 16 lanes s = v.lo + v.hi, then the adjacent pairs of s, then the pairs of those
+ * (s0 + s1) + (s2 + s3) and (s4 + s5) + (s6 + s7), then their sum.  Done for 8 (or 4) terms at
+ * once in the lane layout of x86's horizontal add (hadd8), which needs no reordering between the
+ * levels: about half the shuffles of one vhsum4 per 4 terms.  Elsewhere vhsum4 itself. */
+#if VW == 16
+inline float8 hadd8(float8 x, float8 y) {   /* (x0+x1, x2+x3, y0+y1, y2+y3, x4+x5, x6+x7, y4+y5, y6+y7) */
+    return (float8)(x.s02, y.s02, x.s46, y.s46) + (float8)(x.s13, y.s13, x.s57, y.s57);
+}
+/* lanes 0-3: (s0 + s1) + (s2 + s3) of a, b, c, d; lanes 4-7: (s4 + s5) + (s6 + s7) of each */
+inline float8 hsum_quad(float16 a, float16 b, float16 c, float16 d) {
+    return hadd8(hadd8(a.lo + a.hi, b.lo + b.hi), hadd8(c.lo + c.hi, d.lo + d.hi));
+}
+inline float4 lane_sum4(float16 a, float16 b, float16 c, float16 d) {
+    const float8 x = hsum_quad(a, b, c, d);
+    return x.lo + x.hi;
+}
+inline float8 lane_sum8(float16 a, float16 b, float16 c, float16 d, float16 e, float16 f, float16 g,
+                        float16 h) {
+    const float8 x = hsum_quad(a, b, c, d), y = hsum_quad(e, f, g, h);
+    return (float8)(x.lo, y.lo) + (float8)(x.hi, y.hi);
+}
+#else
+#define lane_sum4 vhsum4
+inline float8 lane_sum8(floatV a, floatV b, floatV c, floatV d, floatV e, floatV f, floatV g, floatV h) {
+    return (float8)(vhsum4(a, b, c, d), vhsum4(e, f, g, h));
+}
 #endif
 
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
@@ -150,12 +179,14 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                             const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
                             /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
                             floatV dot = (floatV)(0.0f);
+#pragma unroll
                             for (int c = 0; c < C; c++) {
                                 dot += vo[c] * l_feat[j * C + c];
                                 term[6 + c] = vo[c] * w;
                             }
                             const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
                             d_cur += dot * w;
+#pragma unroll
                             for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
                             const intV grad = use & (raw <= ALPHA_MAX);
@@ -166,8 +197,18 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                             term[3] = -v_power * dx * dy;
                             term[4] = -0.5f * v_power * dy * dy;
                             term[5] = grad != 0 ? v_al * G : (floatV)(0.0f);
-                            for (int v = 0; v < NSV; v++)
-                                slot[v] = vhsum4(term[4 * v], term[4 * v + 1], term[4 * v + 2], term[4 * v + 3]);
+#pragma unroll
+                            for (int v = 0; v + 1 < NSV; v += 2) {   /* 8 terms at a time */
+                                const float8 s = lane_sum8(term[4 * v], term[4 * v + 1], term[4 * v + 2],
+                                                           term[4 * v + 3], term[4 * v + 4], term[4 * v + 5],
+                                                           term[4 * v + 6], term[4 * v + 7]);
+                                slot[v] = s.lo;
+                                slot[v + 1] = s.hi;
+                            }
+#if NSV % 2
+                            slot[NSV - 1] = lane_sum4(term[4 * NSV - 4], term[4 * NSV - 3], term[4 * NSV - 2],
+                                                      term[4 * NSV - 1]);
+#endif
                             wrote |= 1u << j;
                         }
                     }
