@@ -28,11 +28,13 @@ inline void store8(__global float *p, float8 v) {
  *                addresses are known ahead;
  *   sqrt1, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
- *                one vector instruction). */
+ *                one vector instruction);
+ *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr). */
 #if defined(HOST_CLANG) && HOST_CLANG
 #define HAVE_PREFETCH 1   /* kernels leave out the loads that only compute prefetch addresses when 0 */
 #define PREFETCH(p) __builtin_prefetch(p)
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
+inline int clz1(uint x) { return __builtin_clz(x); }   /* x != 0 */
 inline float8 sqrt8(float8 x) {
     return (float8)(__builtin_sqrtf(x.s0), __builtin_sqrtf(x.s1), __builtin_sqrtf(x.s2),
                     __builtin_sqrtf(x.s3), __builtin_sqrtf(x.s4), __builtin_sqrtf(x.s5),
@@ -42,6 +44,7 @@ inline float8 sqrt8(float8 x) {
 #define HAVE_PREFETCH 0
 #define PREFETCH(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }
+inline int clz1(uint x) { return (int)clz(x); }
 inline float8 sqrt8(float8 x) { return sqrt(x); }
 #endif
 

@@ -35,9 +35,39 @@
 #ifndef BATCH
 #define BATCH 16
 #endif
-#if BATCH > 32
-#error "a work-item's written-slot mask is one 32-bit word per batch"
+#if BATCH > 32 || BATCH % 8 != 0
+#error "a work-item's hit and written-slot masks are one 32-bit word per batch, tested 8 entries at a time"
 #endif
+
+/* stage_gaussian (rasterize_vec.cl) with the cull box stored by coordinate, so that a work-item
+ * tests 8 entries' boxes with one vector compare per coordinate */
+inline void stage_gaussian_bwd(__global const float4 *rec, int g, int j, __local float2 *l_mean,
+                               __local float4 *l_cop, __local float *l_feat, __local float *l_thr,
+                               __local float *l_box) {
+    __global const float4 *r = rec + g * REC4;
+    l_cop[j] = r[0];
+    const float4 bb = r[1];
+    l_box[j] = bb.x; l_box[BATCH + j] = bb.y; l_box[2 * BATCH + j] = bb.z; l_box[3 * BATCH + j] = bb.w;
+    const float4 m = r[2];
+    l_mean[j] = m.xy;
+    l_thr[j] = m.z;
+    __global const float *f = (__global const float *)(r + 3);
+    for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
+}
+
+/* 8 consecutive floats of local memory (element loads, merged into one vector load; PoCL calls
+ * vload8 out of line) */
+inline float8 lload8(__local const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+}
+
+/* bit l set where lane l of the mask t (-1 / 0 per lane) is set */
+inline uint mask_bits8(int8 t) {
+    const int8 b = t & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
+    const int4 c = b.lo | b.hi;
+    const int2 d = c.lo | c.hi;
+    return (uint)(d.x | d.y);
+}
 
 /* The lane sums of a hit's gradient terms, in the order of vhsum4 (vexp.h) value for value, so the
  * same bits: at 16 lanes s = v.lo + v.hi, then the adjacent pairs of s, then the pairs of those
@@ -77,7 +107,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local float l_feat[BATCH * C];
     __local int l_gid[BATCH];
     __local float l_thr[BATCH];
-    __local float4 l_box[BATCH];                 /* cull box (xmin, xmax, ymin, ymax) */
+    __local float l_box[4 * BATCH];              /* cull boxes by coordinate: xmin[BATCH], xmax, ymin, ymax */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
     __local uint l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
@@ -130,10 +160,15 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     for (int b = n_batches - 1; b >= 0; b--) {
         const int base = range.x + b * BATCH;
         const int count = min(BATCH, max_last - b * BATCH);  /* entries of this batch to walk */
-        for (int j = lid; j < count; j += N_WI) {
-            const int g = sorted_values[base + j];
-            l_gid[j] = g;
-            stage_gaussian(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
+        for (int j = lid; j < BATCH; j += N_WI) {
+            if (j < count) {
+                const int g = sorted_values[base + j];
+                l_gid[j] = g;
+                stage_gaussian_bwd(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
+            } else {   /* past the walk: a box that reaches no block */
+                l_box[j] = MAXFLOAT; l_box[BATCH + j] = -MAXFLOAT;
+                l_box[2 * BATCH + j] = MAXFLOAT; l_box[3 * BATCH + j] = -MAXFLOAT;
+            }
         }
 #if HAVE_PREFETCH
         if (b > 0)   /* the next batch walked (b - 1, full): its records' two cache lines */
@@ -148,17 +183,18 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         {   /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
             floatV d_cur = D;
-            /* the batch entries whose cull box reaches this block, in order (branch-free) */
-            uchar hits[BATCH];
-            int n_hits = 0;
-            uint wrote = 0;
-            for (int j = 0; j < count; j++) {
-                const float4 bb = l_box[j];
-                hits[n_hits] = (uchar)j;
-                n_hits += (bb.x <= px1) & (bb.y >= px0) & (bb.z <= py1) & (bb.w >= py0);
+            /* bit j: batch entry j's cull box reaches this block (8 entries per test); walked
+             * from the highest bit down, back to front */
+            uint hitmask = 0;
+            for (int j0 = 0; j0 < count; j0 += 8) {
+                const int8 t = (lload8(l_box + j0) <= px1) & (lload8(l_box + BATCH + j0) >= px0) &
+                               (lload8(l_box + 2 * BATCH + j0) <= py1) & (lload8(l_box + 3 * BATCH + j0) >= py0);
+                hitmask |= mask_bits8(t) << j0;
             }
-            for (int h = n_hits - 1; h >= 0; h--) {
-                const int j = hits[h];
+            uint wrote = 0;
+            while (hitmask != 0) {
+                const int j = 31 - clz1(hitmask);
+                hitmask ^= 1u << j;
                 __local float4 *slot = l_part4 + (j * N_WI + lid) * NSV;
                 {
                     const float4 cop = l_cop[j];
@@ -225,14 +261,24 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         for (int j = lid; j < count; j += N_WI) {
             __local const float4 *src = l_part4 + j * N_WI * NSV;
             float4 sum[NSV];
+#pragma unroll
             for (int v = 0; v < NSV; v++) sum[v] = (float4)(0.0f);
-            for (int i = 0; i < N_WI; i++)
-                if ((l_wrote[i] >> j) & 1u)
-                    for (int v = 0; v < NSV; v++) sum[v] += src[i * NSV + v];
+            /* branch-free: a slot not written this batch (stale) adds +0, which leaves every sum
+             * as it was (a sum from +0 is never -0), so the same bits as skipping it */
+            for (int i = 0; i < N_WI; i++) {
+                const int4 keep = (int4)(-(int)((l_wrote[i] >> j) & 1u));
+#pragma unroll
+                for (int v = 0; v < NSV; v++) sum[v] += as_float4(as_int4(src[i * NSV + v]) & keep);
+            }
+#if DETERMINISTIC && NV % 4 == 0   /* whole float4 rows (16-byte aligned) */
+            __global float4 *dst = (__global float4 *)(v_entry + (base + j) * NV);   /* sorted entry: ours alone */
+#pragma unroll
+            for (int v = 0; v < NSV; v++) dst[v] = sum[v];
+#elif DETERMINISTIC
             const float *tot = (const float *)sum;   /* [4 * NSV], the NV values first */
-#if DETERMINISTIC
-            for (int k = 0; k < NV; k++) v_entry[(base + j) * NV + k] = tot[k];   /* sorted entry: ours alone */
+            for (int k = 0; k < NV; k++) v_entry[(base + j) * NV + k] = tot[k];
 #else
+            const float *tot = (const float *)sum;
             for (int k = 0; k < NV; k++)
                 add_gradient(k, l_gid[j], tot[k], v_means2d, v_conic, v_opac, v_features);
 #endif
