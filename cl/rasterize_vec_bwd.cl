@@ -14,7 +14,8 @@
  * of the batch, each work-item whose lanes use it sums its lanes' NV gradient terms (lane_sum8, a
  * fixed order) and stores them as NSV float4 to its own slot l_part4[j][work-item], and marks bit j
  * of its mask l_wrote[work-item].  After the batch, one work-item per entry adds up the slots that
- * were written, in work-item order (float4 adds; no slot needs zeroing), and adds the totals to
+ * were written, in work-item order (float4 adds; an unwritten slot, stale, is added as +0, which
+ * changes no sum, so no slot needs zeroing), and adds the totals to
  * the global gradients with atomic_add_global_f (skipped when 0), or, with -DDETERMINISTIC=1,
  * stores them to v_entry at the entry's sorted position for rasterize_bwd_gather (in
  * rasterize_bwd.cl), which sums them per Gaussian in binning order: bit-identical between runs.
