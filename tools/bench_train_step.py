@@ -6,7 +6,8 @@ else a synthetic scene of the same size. Prints the median over --runs steps aft
 with the per-part split (each part followed by a queue finish; project_bwd is timed inside the
 adjoints, guard is the gradients' NaN / Inf check), the device and the sizes; then
 the median of as many Trainer.train_step calls (the step as training runs it: no finish between
-the parts, its own read-backs and the NaN guard).
+the parts, its own read-backs and the NaN guard), and of as many Trainer.train_step_between calls
+(an in-between step, with the host's part of it: drawing and warping its target).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
                                      [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels [--top N]]
@@ -171,6 +172,25 @@ def main(argv=None):
             if i >= args.warmup:
                 steps.append(time.perf_counter() - t0)
         print(f"seconds per Trainer.train_step: {statistics.median(steps):.3f}")
+        if tr._between.pairs:
+            # an in-between step (half of the default schedule's steps): its target is built on the
+            # host (the pair's frames warped to the drawn time, train/between.py), then the same step
+            import numpy as np
+            rng = np.random.default_rng(0)
+            draws, steps = [], []
+            for i in range(args.warmup + args.runs):
+                t0 = time.perf_counter()
+                tr._between.draw(rng)
+                t1 = time.perf_counter()
+                rt.queue.finish()
+                t2 = time.perf_counter()
+                tr.train_step_between()
+                rt.queue.finish()
+                if i >= args.warmup:
+                    draws.append(t1 - t0)
+                    steps.append(time.perf_counter() - t2)
+            print(f"seconds per Trainer.train_step_between: {statistics.median(steps):.3f} "
+                  f"(of which the in-between target on the host {statistics.median(draws):.3f})")
 
 
 if __name__ == "__main__":
