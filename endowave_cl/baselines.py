@@ -24,6 +24,8 @@ so repeated evaluations (training-time, several runs in one process) compute it 
 """
 from __future__ import annotations
 
+import functools
+
 from typing import Dict, List, Tuple
 
 import cv2
@@ -74,16 +76,24 @@ def warp_backward(image: np.ndarray, flow: np.ndarray, s: float) -> np.ndarray:
 SAMPLERS = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
 
 
+@functools.lru_cache(maxsize=8)
+def _pixel_grid(h: int, w: int):
+    """(u, v) [h, w] float32: each pixel's x and y, made once per size (read-only)."""
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    u.setflags(write=False)
+    v.setflags(write=False)
+    return u, v
+
+
 def sample_displaced(image: np.ndarray, disp: np.ndarray, sampler: str = "linear") -> np.ndarray:
     """image [H, W(, K)] sampled at p + disp(p) (disp [H, W, 2], pixels (x, y); border repeated),
     float32.  sampler: a key of SAMPLERS; "cubic" values are clipped to the image's own range (the
     cubic kernel overshoots at edges)."""
     if sampler not in SAMPLERS:
         raise ValueError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
-    h, w = disp.shape[:2]
-    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    mx = (u + disp[..., 0]).astype(np.float32)
-    my = (v + disp[..., 1]).astype(np.float32)
+    u, v = _pixel_grid(*disp.shape[:2])
+    mx, my = u + disp[..., 0], v + disp[..., 1]
+    mx, my = (m if m.dtype == np.float32 else m.astype(np.float32) for m in (mx, my))
     image = np.asarray(image, np.float32)
     out = cv2.remap(image, mx, my, SAMPLERS[sampler], borderMode=cv2.BORDER_REPLICATE)
     if sampler != "linear" and image.size:

@@ -148,4 +148,4 @@ class BetweenSampler:
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair))
         if not weight.any():
             return None
-        return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight)
+        return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight, temporary=True)

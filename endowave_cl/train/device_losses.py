@@ -46,12 +46,16 @@ class DeviceTargets:
 
 
 def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
-                    flow: Optional[np.ndarray] = None, flow_valid: Optional[np.ndarray] = None) -> DeviceTargets:
-    """Upload a frame's targets (numpy, channel-last) with the weight maps of image_losses_ref (reference/losses.py)."""
+                    flow: Optional[np.ndarray] = None, flow_valid: Optional[np.ndarray] = None,
+                    temporary: bool = False) -> DeviceTargets:
+    """Upload a frame's targets (numpy, channel-last) with the weight maps of image_losses_ref (reference/losses.py).
+    temporary: targets of one step (an in-between frame): device memory from the runtime's pool, and
+    uploads that do not wait (each keeps its host array alive until it is done)."""
     import pyopencl.array as cla
+    allocator = rt.pool() if temporary else None
 
     def up(a):
-        return cla.to_device(rt.queue, np.ascontiguousarray(a, np.float32))
+        return cla.to_device(rt.queue, np.ascontiguousarray(a, np.float32), allocator=allocator, async_=temporary)
 
     H, W = image.shape[:2]
     m = np.ones((H, W), np.float32) if mask is None else np.asarray(mask, np.float32)
@@ -63,23 +67,23 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     if flow is not None:
         fw = m if flow_valid is None else np.asarray(flow_valid, np.float32) * m
         t.flow, t.flow_w, t.n_flow = up(flow), up(fw), max(float(fw.sum(dtype=np.float64)), 1.0)
-    t.ssim_target = _ssim_target(rt, t.image, t.mask)
+    t.ssim_target = _ssim_target(rt, t.image, t.mask, allocator)
     return t
 
 
-def _ssim_target(rt, image, mask) -> object:
+def _ssim_target(rt, image, mask, allocator=None) -> object:
     """The target's SSIM maps (y m, (y m)^2) blurred: they do not depend on the render, so they are
     made once per frame here instead of in every step."""
     import pyopencl.array as cla
     H, W = (int(s) for s in image.shape[:2])
     npix = H * W
-    stack = cla.empty(rt.queue, (H, W, NTMAP), np.float32)
+    stack = cla.empty(rt.queue, (H, W, NTMAP), np.float32, allocator=rt.pool())
     rt.launch(rt.kernel(KFILE, "ssim_target_stack"), (round_up(max(npix, 1), LOCAL),), (LOCAL,), image.data,
               mask.data, np.int32(npix), stack.data)
     window = _window(rt)
     from ..wavelet.ops import conv_axis
     tmp = conv_axis(rt, stack, window, axis=1, border="zero")
-    out = cla.empty(rt.queue, (H, W, NTMAP), np.float32)   # own buffer, not the pool's: kept for the run
+    out = cla.empty(rt.queue, (H, W, NTMAP), np.float32, allocator=allocator)   # None: own buffer, kept for the run
     return conv_axis(rt, tmp, window, axis=0, out=out, border="zero")
 
 
