@@ -590,6 +590,21 @@ def _flow_anneal_final(scene, rt, tmp_path):
     assert "flow" not in tr.train_step(k)    # the last step: weight 0, no flow term
 
 
+def _flow_photo_max(scene, rt, tmp_path):
+    """flow_photo_max: the flow loss's weights are the consistency test's times the photometric
+    test at that threshold; 0 leaves the consistency test's alone."""
+    from endowave_cl.data.flow import photometric_consistent
+    off = _trainer(scene, rt, tmp_path / "off", iterations=1, use_flow=True)
+    on = _trainer(scene, rt, tmp_path / "on", iterations=1, use_flow=True, flow_photo_max=0.01)
+    k = scene.train_indices[0]
+    pair = off.flows[k]
+    np.testing.assert_array_equal(off.targets[k].dev.flow_w.get(), pair.valid)
+    photo = photometric_consistent(scene.frames[k].image, scene.frames[pair.dst].image, pair.flow, 0.01)
+    assert 0 < (photo & (pair.valid > 0)).sum() < (pair.valid > 0).sum()   # the test removes some, not all
+    np.testing.assert_array_equal(on.targets[k].dev.flow_w.get(), pair.valid * photo)
+    assert on.targets[k].dev.n_flow < off.targets[k].dev.n_flow
+
+
 def _between_by_time(scene, rt, tmp_path):
     """between_by_time: a training pair is drawn in proportion to the time it spans (here the pair
     around the held-out frame 1 spans twice its neighbours' time); off: uniformly over the pairs."""
@@ -703,6 +718,7 @@ CHECKS = {
     "between_sampler": _between_sampler,
     "between_by_time": _between_by_time,
     "flow_anneal_final": _flow_anneal_final,
+    "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),

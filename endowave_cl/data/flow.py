@@ -143,6 +143,17 @@ def fb_consistent(fw: np.ndarray, bw: np.ndarray) -> np.ndarray:
     return (lhs < rhs) & _inside(x, y, w, h)
 
 
+def photometric_consistent(image0: np.ndarray, image1: np.ndarray, fw: np.ndarray, max_diff: float) -> np.ndarray:
+    """[H, W] bool: where image1 sampled at p + fw(p) (bilinear) matches image0 at p within
+    max_diff, the mean absolute difference over the colour channels (images in [0, 1]).  A flow
+    that carries a pixel onto different colour follows something other than the tissue: a moving
+    specular highlight, the tool, a failure of the estimator."""
+    x, y = _targets(np.asarray(fw, np.float32))
+    warped = cv2.remap(np.asarray(image1, np.float32), x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    diff = np.abs(np.asarray(image0, np.float32) - warped)
+    return (diff.mean(-1) if diff.ndim == 3 else diff) <= max_diff
+
+
 def valid_mask(fw, bw=None, mask0=None, mask1=None) -> np.ndarray:
     """[H, W] float32 valid mask of the forward flow ``fw`` (see the module docstring).
 

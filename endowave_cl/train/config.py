@@ -151,6 +151,10 @@ class TrainConfig:
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
     flow_huber_delta: float = 4.0       # px: beyond this endpoint error the flow loss grows linearly
                                         # (bounded gradient; see reference/losses.py); inf: pure squared
+    flow_photo_max: float = 0.0         # > 0: the flow loss leaves out the pixels whose flow
+                                        # carries them onto colour more than this different (mean
+                                        # |RGB difference|, images in [0, 1]; data/flow.py
+                                        # photometric_consistent); 0: the consistency test alone
     flow_anneal_final: float = 1.0      # lambda_flow is multiplied by a factor that falls linearly
                                         # from 1 at densify_until to this at the last step (1:
                                         # constant; 0: the run ends on the images alone, the
@@ -280,7 +284,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

@@ -188,9 +188,13 @@ class Trainer:
         for k in sc.train_indices:
             f = sc.frames[k]
             pair = flows.get(k)
+            valid = None if pair is None else pair.valid
+            if pair is not None and c.flow_photo_max > 0:
+                from ..data.flow import photometric_consistent
+                valid = valid * photometric_consistent(f.image, sc.frames[pair.dst].image, pair.flow, c.flow_photo_max)
             out[k] = FrameTargets(
                 prepare_targets(self.rt, f.image, f.mask, f.depth if c.use_depth else None,
-                                None if pair is None else pair.flow, None if pair is None else pair.valid),
+                                None if pair is None else pair.flow, valid),
                 next_time=None if pair is None else float(sc.frames[pair.dst].time))
         return out
 
