@@ -148,9 +148,8 @@ def photometric_consistent(image0: np.ndarray, image1: np.ndarray, fw: np.ndarra
     max_diff, the mean absolute difference over the colour channels (images in [0, 1]).  A flow
     that carries a pixel onto different colour follows something other than the tissue: a moving
     specular highlight, the tool, a failure of the estimator."""
-    x, y = _targets(np.asarray(fw, np.float32))
-    warped = cv2.remap(np.asarray(image1, np.float32), x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    diff = np.abs(np.asarray(image0, np.float32) - warped)
+    from ..baselines import sample_displaced
+    diff = np.abs(np.asarray(image0, np.float32) - sample_displaced(image1, np.asarray(fw, np.float32)))
     return (diff.mean(-1) if diff.ndim == 3 else diff) <= max_diff
 
 

@@ -48,7 +48,6 @@ def scene_extent(g: Gaussians) -> float:
     return float(max(1e-3, np.percentile(np.linalg.norm(xyz - xyz.mean(0), axis=1), 95) * 1.1))
 
 
-
 def late_factor(cfg, step: int, final: float) -> float:
     """The late schedules' factor (in-between chance, flow losses' weight): 1 until
     cfg.densify_until, then falling linearly to ``final`` at cfg.iterations."""
