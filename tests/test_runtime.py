@@ -241,3 +241,33 @@ def test_common_sqrt_is_the_correctly_rounded_sqrt(rt):
         assert diff.max() <= ulps, f"sqrt off by {diff.max()} ulp (allowed {ulps})"
         special = keep & ((x == 0) | np.isinf(x))
         assert np.array_equal(got[special].view(np.uint32), want[special].view(np.uint32))
+
+
+@pytest.mark.parametrize("shape,dtype", [((256, 320, 3), np.float32), (7, np.int32), ((0, 4), np.float32),
+                                         ((5,), np.uint64), ((), np.float32)])
+def test_runtime_empty_matches_pyopencl_empty(rt, shape, dtype):
+    import pyopencl.array as cla
+    a = rt.empty(shape, dtype)
+    b = cla.empty(rt.queue, shape, dtype, allocator=rt.pool())
+    assert (a.shape, a.dtype, a.strides, a.size, a.nbytes) == (b.shape, b.dtype, b.strides, b.size, b.nbytes)
+    assert a.flags.c_contiguous and a.queue is rt.queue and a.offset == 0
+    if a.size:
+        host = np.arange(a.size).astype(dtype).reshape(a.shape)
+        a.set(host)
+        np.testing.assert_array_equal(a.get(), host)
+
+
+def test_view_is_reshape_without_a_copy(rt):
+    import pyopencl.array as cla
+    x = cla.to_device(rt.queue, np.arange(24, dtype=np.float32).reshape(4, 6))
+    v = R.view(x, (2, 3, 4))
+    assert v.shape == (2, 3, 4) and v.strides == x.reshape(2, 3, 4).strides and v.base_data is x.base_data
+    np.testing.assert_array_equal(v.get(), np.arange(24, dtype=np.float32).reshape(2, 3, 4))
+    v.fill(1.0)   # the same memory
+    np.testing.assert_array_equal(x.get(), np.ones((4, 6), np.float32))
+    row = x[2]    # an offset view keeps its offset
+    np.testing.assert_array_equal(R.view(row, (3, 2)).get(), np.ones((3, 2), np.float32))
+    with pytest.raises(ValueError, match="cannot see 24"):
+        R.view(x, (5, 5))
+    with pytest.raises(ValueError, match="not C-contiguous"):
+        R.view(x[:, ::2], (12,))

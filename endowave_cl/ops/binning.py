@@ -69,8 +69,8 @@ def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int, compact: bool):
     if n == 0:
         return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0,
                           cla.zeros(q, 1, np.int32)), DEPTH_BITS
-    counts = cla.empty(q, n, np.int32, allocator=al)  # [N]
-    dbounds = cla.empty(q, 2, np.uint32, allocator=al)
+    counts = rt.empty(n, np.int32)  # [N]
+    dbounds = rt.empty(2, np.uint32)
     dbounds.fill(np.uint32(0xFFFFFFFF))
     dbounds[1:2].fill(np.uint32(0))
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, depth.data, np.int32(n), counts.data,
@@ -81,8 +81,8 @@ def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int, compact: bool):
     if compact and m > 0:
         lo, hi = (int(v) for v in dbounds.get())
         dmin, dshift = lo, (hi - lo).bit_length()
-    keys = cla.empty(q, m, np.uint64, allocator=al)    # [M]
-    values = cla.empty(q, m, np.int32, allocator=al)   # [M]
+    keys = rt.empty(m, np.uint64)    # [M]
+    values = rt.empty(m, np.int32)   # [M]
     if m > 0:
         _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
                 np.int32(n), np.int32(tiles_x), np.uint32(dmin), np.int32(dshift), keys.data, values.data)

@@ -174,11 +174,11 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     al = rt.pool()
     f32, i32 = np.float32, np.int32
     out = Projected(
-        means2d=cla.empty(q, (n, 2), f32, allocator=al), conic=cla.empty(q, (n, 3), f32, allocator=al),
-        depth=cla.empty(q, (n,), f32, allocator=al), radius=cla.empty(q, (n,), i32, allocator=al),
-        opac=cla.empty(q, (n,), f32, allocator=al), features=cla.empty(q, (n, channels), f32, allocator=al),
-        rect=cla.empty(q, (n, 4), i32, allocator=al), tiles_touched=cla.empty(q, (n,), i32, allocator=al),
-        color_inner=cla.empty(q, (n, nt + 1, 3), f32, allocator=al))
+        means2d=rt.empty((n, 2), f32), conic=rt.empty((n, 3), f32),
+        depth=rt.empty((n,), f32), radius=rt.empty((n,), i32),
+        opac=rt.empty((n,), f32), features=rt.empty((n, channels), f32),
+        rect=rt.empty((n, 4), i32), tiles_touched=rt.empty((n,), i32),
+        color_inner=rt.empty((n, nt + 1, 3), f32))
     if n == 0:
         return out
     _check_params(params, n)
@@ -213,7 +213,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
               "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
     if sh_factors:
         shapes["v_sh"] = (n, sh_factor_width(nt, K))
-    grads = {k: cla.empty(q, s, np.float32, allocator=al) for k, s in shapes.items()}
+    grads = {k: rt.empty(s, np.float32) for k, s in shapes.items()}
     sh_buf = grads["v_sh"]
     if sh_factors:
         grads["v_sh"] = ShGradFactors(sh_buf, nt, K)

@@ -266,10 +266,10 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     C = int(features.shape[1])
     q, al = rt.queue, rt.pool()
-    res = RasterOut(cla.empty(q, (height, width, C), np.float32, allocator=al),
-                    cla.empty(q, (height, width), np.float32, allocator=al),
-                    cla.empty(q, (height, width), np.float32, allocator=al),
-                    cla.empty(q, (height, width), np.int32, allocator=al))
+    res = RasterOut(rt.empty((height, width, C), np.float32),
+                    rt.empty((height, width), np.float32),
+                    rt.empty((height, width), np.float32),
+                    rt.empty((height, width), np.int32))
     if width == 0 or height == 0:
         return res
     tiles_x, _, gsize, lsize = _grid(width, height)
@@ -310,7 +310,7 @@ def _vec_records(rt, means2d, conic, opac, features, opts):
     if N == 0:
         return None
     rec4 = 3 + (C + 3) // 4
-    rec = cla.empty(rt.queue, (N, rec4, 4), np.float32, allocator=rt.pool())
+    rec = rt.empty((N, rec4, 4), np.float32)
     kp = rt.kernel("rasterize_vec.cl", "rasterize_vec_prep", opts)
     wg = 64
     rt.launch_1d(kp, N, wg, means2d.data, conic.data, opac.data, features.data,
@@ -342,9 +342,11 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     M = int(sorted_values.shape[0])
     # the deterministic mode's gather writes every row (empty suffices) unless there is nothing
     # to gather; the atomic mode accumulates into zeros
-    make = cla.empty if det and M > 0 and width > 0 and height > 0 else cla.zeros
-    grads = {"v_means2d": make(q, (N, 2), np.float32, allocator=al), "v_conic": make(q, (N, 3), np.float32, allocator=al),
-             "v_opac": make(q, (N,), np.float32, allocator=al), "v_features": make(q, (N, C), np.float32, allocator=al)}
+    def zeros(shape, dtype):
+        return cla.zeros(q, shape, dtype, allocator=al)
+    make = rt.empty if det and M > 0 and width > 0 and height > 0 else zeros
+    grads = {"v_means2d": make((N, 2), np.float32), "v_conic": make((N, 3), np.float32),
+             "v_opac": make((N,), np.float32), "v_features": make((N, C), np.float32)}
     if N == 0 or width == 0 or height == 0:
         return grads
     tiles_x, _, gsize, lsize = _grid(width, height)
@@ -355,7 +357,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     # scalar one only those it walks
     ch = choice or raster_choice(rt, C)
     if det:
-        v_entry = (cla.empty if ch.variant == "vector" else cla.zeros)(q, (M, 6 + C), np.float32, allocator=al)
+        v_entry = (rt.empty if ch.variant == "vector" else zeros)((M, 6 + C), np.float32)
     else:
         v_entry = None
     rect, offsets = deterministic if det else (None, None)
@@ -386,7 +388,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     if det:
         # the sorted entry of each binning slot, then per Gaussian the sum of its entries' terms in
         # binning order (the same order as summing at the slots: the same bits)
-        entry_of = cla.empty(q, (M,), np.int32, allocator=al)
+        entry_of = rt.empty((M,), np.int32)
         entry_of.fill(np.int32(-1))
         n_tiles = int(tile_ranges.shape[0])
         ke = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_entry_of", opts)

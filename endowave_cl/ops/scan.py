@@ -28,12 +28,12 @@ def exclusive_scan_into(rt, x: cla.Array, n_in: int, out: cla.Array, n_out: int)
     if n_out <= 0:
         return
     n_groups = (n_out + SCAN_BLOCK - 1) // SCAN_BLOCK
-    sums = cla.empty(rt.queue, n_groups, np.int32, allocator=rt.pool())  # [n_groups]
+    sums = rt.empty(n_groups, np.int32)  # [n_groups]
     k = rt.kernel("scan.cl", "scan_blocks", _options())
     rt.launch(k, (n_groups * SCAN_WG,), (SCAN_WG,), x.data if n_in > 0 else sums.data,
               np.int32(n_in), out.data, np.int32(n_out), sums.data)
     if n_groups > 1:
-        offs = cla.empty(rt.queue, n_groups, np.int32, allocator=rt.pool())  # [n_groups]
+        offs = rt.empty(n_groups, np.int32)  # [n_groups]
         exclusive_scan_into(rt, sums, n_groups, offs, n_groups)
         add = rt.kernel("scan.cl", "scan_add_offsets", _options())
         wg = min(SCAN_WG, rt.max_work_group_size)
@@ -43,7 +43,7 @@ def exclusive_scan_into(rt, x: cla.Array, n_in: int, out: cla.Array, n_out: int)
 def exclusive_scan_with_total(rt, x: cla.Array) -> cla.Array:
     """[n + 1] int32: the exclusive scan of x [n] followed by the total (no host sync)."""
     n = int(x.size)
-    out = cla.empty(rt.queue, n + 1, np.int32, allocator=rt.pool())
+    out = rt.empty(n + 1, np.int32)
     exclusive_scan_into(rt, x, n, out, n + 1)
     return out
 

@@ -92,11 +92,11 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     n_blocks = -(-n // (cfg.wg * items))
     radix = 1 << cfg.radix_bits
     al = rt.pool()
-    hist = cla.empty(q, radix * n_blocks, np.int32, allocator=al)     # [radix, n_blocks]
-    offsets = cla.empty(q, radix * n_blocks, np.int32, allocator=al)  # [radix, n_blocks]
-    bufs = [(cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al))]
+    hist = rt.empty(radix * n_blocks, np.int32)     # [radix, n_blocks]
+    offsets = rt.empty(radix * n_blocks, np.int32)  # [radix, n_blocks]
+    bufs = [(rt.empty(n, np.uint64), rt.empty(n, np.int32))]
     if passes > 1:
-        bufs.append((cla.empty(q, n, np.uint64, allocator=al), cla.empty(q, n, np.int32, allocator=al)))
+        bufs.append((rt.empty(n, np.uint64), rt.empty(n, np.int32)))
 
     k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
     k_scatter = rt.kernel("sort.cl", "radix_scatter", cfg.options())

@@ -77,7 +77,7 @@ def _ssim_target(rt, image, mask, allocator=None) -> object:
     import pyopencl.array as cla
     H, W = (int(s) for s in image.shape[:2])
     npix = H * W
-    stack = cla.empty(rt.queue, (H, W, NTMAP), np.float32, allocator=rt.pool())
+    stack = rt.empty((H, W, NTMAP), np.float32)
     rt.launch(rt.kernel(KFILE, "ssim_target_stack"), (round_up(max(npix, 1), LOCAL),), (LOCAL,), image.data,
               mask.data, np.int32(npix), stack.data)
     window = _window(rt)
@@ -148,15 +148,15 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     window = _window(rt)
     gsize = (round_up(max(npix, 1), LOCAL),)
 
-    maps = cla.empty(q, (H, W, NMAP), np.float32, allocator=rt.pool())
+    maps = rt.empty((H, W, NMAP), np.float32)
     rt.launch(rt.kernel(KFILE, "ssim_stack", opts), gsize, (LOCAL,), features.data, tgt.image.data, tgt.mask.data,
               np.int32(npix), maps.data)
     blurred = _blur(rt, maps, window)
 
-    v = cla.empty(q, (H, W, CF), np.float32, allocator=rt.pool())
-    g_ssim = cla.empty(q, (H, W, NGRAD), np.float32, allocator=rt.pool())
+    v = rt.empty((H, W, CF), np.float32)
+    g_ssim = rt.empty((H, W, NGRAD), np.float32)
     groups = gsize[0] // LOCAL
-    partial = cla.empty(q, (groups, NSUM), np.float32, allocator=rt.pool())
+    partial = rt.empty((groups, NSUM), np.float32)
     w_rgb = cfg.lambda_rgb / tgt.n_rgb
     dummy = tgt.mask.data
     rt.launch(
@@ -176,7 +176,7 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     v_rgb = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
         from ..wavelet.ops import diff_loss_and_grad_deferred
-        d = cla.empty(q, (H, W, 3), np.float32, allocator=rt.pool())
+        d = rt.empty((H, W, 3), np.float32)
         rt.launch(rt.kernel(KFILE, "rgb_masked_diff", opts), gsize, (LOCAL,), features.data, tgt.image.data,
                   tgt.mask.data, np.int32(tgt.has_mask), np.int32(npix), d.data)
         sums["wavelet"], wavelet_finish, v_rgb = diff_loss_and_grad_deferred(
@@ -232,7 +232,7 @@ def gaussian_flow_enqueue(rt, out, tgt: DeviceTargets, cfg, channels: Dict[str, 
     H, W, CF = (int(s) for s in out.features.shape)
     opts = [f"-DC={max(N_C, 1)}", f"-DCF={CF}", f"-DCH_DEPTH={int(channels['depth'])}",
             f"-DCH_FLOW={int(channels['flow'])}"]
-    v = cla.empty(rt.queue, (n, max(N_C, 1)), np.float32, allocator=rt.pool())
+    v = rt.empty((n, max(N_C, 1)), np.float32)
     groups = max(1, -(-n // GFLOW_LOCAL))
     partial = cla.zeros(rt.queue, (groups,), np.float32, allocator=rt.pool())
     coef = cfg.lambda_flow_gaussian / tgt.n_flow

@@ -23,7 +23,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime import round_up
+from ..runtime import round_up, view
 from .filters import BAND_FILTERS, BANDS, design_filters, rational_factor, resampled_length
 
 KFILE = "wavelet.cl"
@@ -32,7 +32,7 @@ RED_CHUNK = 64        # consecutive elements per work-item of sumsq_scale (a mul
 
 
 def _empty(rt, shape) -> cla.Array:
-    return cla.empty(rt.queue, tuple(int(s) for s in shape), np.float32, allocator=rt.pool())
+    return rt.empty(tuple(int(s) for s in shape), np.float32)
 
 
 def _check(x: cla.Array, name: str) -> None:
@@ -187,7 +187,7 @@ def conv_axis_stack_bwd(rt, v_out: cla.Array, f, terms: Terms, axis: int, out: O
 
 def _one(x: Optional[cla.Array]) -> Optional[cla.Array]:
     """x as a stack of one slot (a view)."""
-    return None if x is None else x.reshape((1,) + tuple(x.shape))
+    return None if x is None else view(x, (1,) + tuple(x.shape))
 
 
 def conv_axis(rt, x: cla.Array, f, axis: int, out: Optional[cla.Array] = None,
@@ -266,7 +266,7 @@ def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
 
 def _as_hwc(img: cla.Array) -> cla.Array:
     if img.ndim == 2:
-        return img.reshape(img.shape[0], img.shape[1], 1)
+        return view(img, (img.shape[0], img.shape[1], 1))
     if img.ndim != 3:
         raise ValueError(f"image must be [H, W] or [H, W, C], got {img.shape}")
     return img
@@ -414,7 +414,7 @@ def loss_and_grad_deferred(rt, rendered: cla.Array, target: cla.Array, mask: Opt
     if mask is not None:
         _launch(rt, rt.kernel(KFILE, "scale_masked"), v.size, v.data, mask.data, np.float32(1.0), np.int32(npix),
                 np.int32(C), np.int32(1))
-    return partial, finish, v.reshape(rendered.shape)
+    return partial, finish, view(v, rendered.shape)
 
 
 def diff_loss_and_grad_deferred(rt, d: cla.Array, q: int, levels: int, weights: Sequence[float]):
