@@ -26,6 +26,11 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     fps_runs renders after warm-up; None when fps_runs is 0), plus "per_frame" (each test frame's
     index, name, time and figures).
 
+    When the test frames have depth maps, "depth" holds the mean absolute error of the rendered
+    depth (divided by the accumulated alpha: the expected depth of what is seen) over their valid
+    tissue pixels, in the units of the scene's depth files ("mae") and relative to the mean true
+    depth there ("relative"); else None.
+
     When the scene has gt_flow/ (synthetic scenes), "flow" holds the end-point error of the flow
     the model renders from each test frame to the next frame against the ground truth, beside
     DIS's error on the same pixels (see ``flow_references``); else "flow" is None.
@@ -52,6 +57,8 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
                "model": frame_scores(out["image"], f.image, f.mask, use_lpips)}
         if k in flow_refs:
             row["flow"] = _flow_row(out["flow"], flow_refs[k])
+        if f.depth is not None:
+            row["depth"] = _depth_row(out["depth"], out["alpha"], f)
         rows.append(row)
     m = _means(rows, "model")
     fps = None
@@ -59,6 +66,7 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
         fps = _render_fps(rt, params, scene.frames[scene.test_indices[0]], fps_runs)
     m.update({"fps": fps, "test_frames": len(scene.test_indices), "device": rt.name})
     m["flow"] = _flow_summary(rows) if flow_refs else None
+    m["depth"] = _depth_summary(rows, scene.world_scale)
     if with_baselines:
         from .baselines import NAMES, baseline_scores, summarise
         base = baseline_scores(scene, use_lpips)
@@ -88,6 +96,28 @@ def _means(rows, name) -> dict:
         vals = [r[name][key] for r in rows]
         out[key] = None if any(v is None for v in vals) else float(np.mean(vals))
     return out
+
+
+# ------------------------------------------------------------------------------ depth vs depth maps
+def _depth_row(depth, alpha, frame) -> dict:
+    """Sums over one test frame's valid tissue pixels (scene units): |error| and true depth."""
+    pred = depth / np.maximum(alpha, 1e-6)                     # [H, W]
+    valid = frame.depth > 0
+    if frame.mask is not None:
+        valid &= frame.mask > 0.5
+    err = np.abs(pred - frame.depth)[valid]
+    return {"abs_sum": float(err.sum(dtype=np.float64)), "true_sum": float(frame.depth[valid].sum(dtype=np.float64)),
+            "pixels": int(valid.sum())}
+
+
+def _depth_summary(rows, world_scale: float):
+    d = [r["depth"] for r in rows if "depth" in r]
+    n = sum(x["pixels"] for x in d)
+    if not d or n == 0:
+        return None
+    mae = sum(x["abs_sum"] for x in d) / n                     # scene units
+    return {"mae": mae / world_scale, "relative": mae / max(sum(x["true_sum"] for x in d) / n, 1e-12),
+            "frames": len(d), "pixels": n}
 
 
 # ------------------------------------------------------------------------------ flow vs gt_flow

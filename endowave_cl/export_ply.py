@@ -79,10 +79,14 @@ def gaussians_at(g: Gaussians, t: float) -> dict:
     return {"mean": mean, "cov": cov, "std": std, "rot": evecs, "opacity": opac, "sh": sh_t, "keep": keep}
 
 
-def export_ply(path, g: Gaussians, t: float) -> int:
-    """Write the model at time t to ``path``; returns the number of Gaussians written."""
+def export_ply(path, g: Gaussians, t: float, scale: float = 1.0) -> int:
+    """Write the model at time t to ``path``; returns the number of Gaussians written.  scale:
+    positions and sizes are multiplied by it (1 / the run's world_scale writes the scene files'
+    own units, data/scene.py)."""
     path = Path(path)
     a = gaussians_at(g, float(t))
+    a["mean"] = a["mean"] * float(scale)
+    a["std"] = a["std"] * float(scale)
     M = a["mean"].shape[0]
     K = a["sh"].shape[1]
     if K - 1 > PLY_SH_REST:

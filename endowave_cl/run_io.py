@@ -45,6 +45,20 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     ck, state = load_newest_good_checkpoint(run, log=lambda m: print(m, file=sys.stderr))
     if ck is None:
         raise EndowaveError(f"{run}: no checkpoint_*.npz yet")
-    scene = load_scene(scene_path, downscale=cfg.downscale)
+    # in the units the run was trained in (runs from before scene units: the files' own)
+    scene = load_scene(scene_path, downscale=cfg.downscale, world_scale=run_world_scale(state, ck))
     return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
 
+
+def run_world_scale(state, where) -> float:
+    """The scene units a checkpoint was trained in (data/scene.py world_scale); 1.0 before they existed."""
+    import numpy as np
+    raw = state.get("extra", {}).get("world_scale", 1.0)
+    v = raw
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (np.isfinite(v) and v > 0):
+        raise EndowaveError(f"{where}: world_scale {raw!r} is not a positive number")
+    return v

@@ -39,8 +39,9 @@ def test_synthetic_scene_loads_with_shapes_times_split_camera(synth_scene):
         py = cam.fy * pts[..., 1] / pts[..., 2] + cam.cy
         u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
         assert np.abs(px - u).max() < 1e-3 and np.abs(py - v).max() < 1e-3
-        # depth in scene units (scene.json depth_scale), equal to the points' z up to quantisation
-        assert np.abs(fr.depth - pts[..., 2]).max() <= 0.5e-3 + 1e-6
+        # depth in scene units: file units (scene.json depth_scale) times world_scale, equal to the
+        # points' z up to quantisation
+        assert np.abs(fr.depth / scene.world_scale - pts[..., 2]).max() <= 0.5e-3 + 1e-5
         assert scene.near < fr.depth.min() and fr.depth.max() < scene.far
 
 
@@ -126,7 +127,7 @@ def test_stereomis_hwf_is_detected_and_can_be_overridden(synth_scene, tmp_path):
     scene = load_scene(d)                                # auto: (cy, cx) is not the image size
     cam = scene.frames[0].camera
     assert (cam.fx, cam.cx, cam.cy) == (f, cx, cy) and scene.hwf_layout == "cy_cx_f"
-    assert (scene.near, scene.far) == (0.03, 250.0)
+    assert (scene.near / scene.world_scale, scene.far / scene.world_scale) == (pytest.approx(0.03), pytest.approx(250.0))
     half = load_scene(d, downscale=2).frames[0].camera
     assert (half.cx, half.cy) == (cx / 2, cy / 2)
     with pytest.raises(Exception, match="poses_bounds.npy.*images are"):
@@ -140,3 +141,64 @@ def test_stereomis_hwf_is_detected_and_can_be_overridden(synth_scene, tmp_path):
 def test_split_indices():
     train, test = split_indices(17)
     assert test == [1, 9] and sorted(train + test) == list(range(17))
+
+
+def _with_depth_units(src, dst, factor):
+    """A copy of the scene src whose depth files and bounds are in units factor times smaller."""
+    import shutil
+    shutil.copytree(src, dst)
+    info = json.loads((dst / "scene.json").read_text())
+    info["depth_scale"] = info["depth_scale"] * factor
+    (dst / "scene.json").write_text(json.dumps(info))
+    _rewrite_poses(dst, lambda a: np.concatenate([a[:, :15], a[:, 15:] * factor], 1))
+    return dst
+
+
+def test_scene_units_do_not_depend_on_the_files_units(synth_scene, tmp_path):
+    from endowave_cl.data.scene import SCENE_DEPTH
+    a = load_scene(synth_scene)
+    b = load_scene(_with_depth_units(synth_scene, tmp_path / "x30", 30.0))
+    assert b.world_scale == pytest.approx(a.world_scale / 30.0, rel=1e-6)
+    assert (b.near, b.far) == (pytest.approx(a.near, rel=1e-6), pytest.approx(a.far, rel=1e-6))
+    for fa, fb in zip(a.frames, b.frames):
+        np.testing.assert_allclose(fb.depth, fa.depth, rtol=1e-6)
+    # the training frames' median depth sits at SCENE_DEPTH, whatever the files' units
+    d = np.concatenate([a.frames[i].depth[a.frames[i].depth > 0] for i in a.train_indices])
+    assert np.median(d) == pytest.approx(SCENE_DEPTH, rel=1e-6)
+    # ignoring the depth maps does not change the units (a run and its evaluation agree)
+    assert load_scene(synth_scene, use_depth=False).world_scale == a.world_scale
+    assert load_scene(synth_scene, downscale=2).world_scale == a.world_scale
+
+
+def test_scene_without_depth_puts_its_prior_plane_at_scene_depth(synth_scene, tmp_path):
+    import shutil
+    from endowave_cl.data.scene import SCENE_DEPTH
+    from endowave_cl.train.init import prior_depth
+    dst = tmp_path / "nodepth"
+    shutil.copytree(synth_scene, dst)
+    shutil.rmtree(dst / "depth")
+    _rewrite_poses(dst, lambda a: np.concatenate([a[:, :15], np.tile([0.0, 500.0], (len(a), 1))], 1))
+    s = load_scene(dst)
+    assert s.world_scale == pytest.approx(SCENE_DEPTH / np.sqrt(0.5 * 500.0))
+    assert prior_depth(s.frames, s.train_indices, s.near, s.far) == pytest.approx(SCENE_DEPTH)
+
+
+def test_set_world_scale_scales_depth_bounds_and_camera_translations(synth_scene, tmp_path):
+    dst = tmp_path / "moved"
+    import shutil
+    shutil.copytree(synth_scene, dst)
+    # a camera translated along the LLFF axes: its centre must scale with the world
+    _rewrite_poses(dst, lambda a: np.concatenate([a[:, :3], a[:, 3:4] + 0.25, a[:, 4:]], 1))
+    raw = load_scene(dst, world_scale=1.0)
+    s = load_scene(dst, world_scale=2.5)
+    assert s.world_scale == 2.5 and s.near == pytest.approx(2.5 * raw.near)
+    for fr, fs in zip(raw.frames, s.frames):
+        np.testing.assert_allclose(fs.depth, 2.5 * fr.depth, rtol=1e-6)
+        np.testing.assert_allclose(fs.camera.campos, 2.5 * fr.camera.campos, rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(fs.camera.viewmat[:3, :3], fr.camera.viewmat[:3, :3])
+    assert np.abs(raw.frames[0].camera.campos).max() > 0.1
+    s.set_world_scale(1.0)
+    np.testing.assert_allclose(s.frames[3].depth, raw.frames[3].depth, rtol=1e-6)
+    from endowave_cl.errors import DataError
+    with pytest.raises(DataError, match="world_scale must be a positive number"):
+        s.set_world_scale(0.0)

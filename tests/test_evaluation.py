@@ -81,6 +81,41 @@ def test_rendered_flow_error_against_gt_flow(rt, scene_dir):
     assert m["flow"]["dis_epe"] == m0["dis_epe"]
 
 
+def test_depth_error_against_the_depth_maps_in_the_files_units(rt, scene_dir):
+    import copy
+    import math
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.evaluation import evaluate_run
+    from endowave_cl.gaussians import upload
+    from endowave_cl.render import render
+    g = _gaussians(True)
+    s1 = load_scene(scene_dir, world_scale=1.0)
+    m1 = evaluate_run(rt, upload(rt, g), s1, fps_runs=0, with_lpips=False)["depth"]
+    # by hand: |depth / alpha - depth map| over valid tissue pixels of the test frames
+    errs, true = [], []
+    for k in s1.test_indices:
+        f = s1.frames[k]
+        h = render(rt, upload(rt, g), f.camera, f.time).host()
+        ok = (f.depth > 0) & (f.mask > 0.5)
+        errs.append(np.abs(h["depth"] / np.maximum(h["alpha"], 1e-6) - f.depth)[ok])
+        true.append(f.depth[ok])
+    mae = np.concatenate(errs).mean()
+    assert m1["frames"] == 2 and m1["pixels"] == sum(e.size for e in errs)
+    assert m1["mae"] == pytest.approx(mae, rel=1e-6)
+    assert m1["relative"] == pytest.approx(mae / np.concatenate(true).mean(), rel=1e-6)
+    assert 0 < m1["relative"] < 1
+    # the same model and scene measured in units 2.5 times smaller: the same error in the files' units
+    g2 = copy.deepcopy(g)
+    g2.means[:, :3] *= 2.5
+    g2.scales[:, :3] += math.log(2.5)
+    m2 = evaluate_run(rt, upload(rt, g2), load_scene(scene_dir, world_scale=2.5), fps_runs=0, with_lpips=False)
+    assert m2["depth"]["mae"] == pytest.approx(m1["mae"], rel=1e-3)
+    assert m2["depth"]["relative"] == pytest.approx(m1["relative"], rel=1e-3)
+    # a scene without depth maps: no depth figures
+    assert evaluate_run(rt, upload(rt, g), load_scene(scene_dir, use_depth=False), fps_runs=0,
+                        with_lpips=False)["depth"] is None
+
+
 def test_flow_image_channel_does_not_change_the_scored_image(rt, scene_dir):
     """The evaluation renders test frames with a flow time; the image must be the one without."""
     from endowave_cl.data.scene import load_scene
@@ -155,7 +190,8 @@ def test_eval_command_baselines_margin_flow_and_figures(rt, scene_dir, tmp_path,
     assert m["margin"]["psnr"] == pytest.approx(m["psnr"] - m["baselines"][best]["psnr"])
     assert m["margin"]["psnr_masked"] == pytest.approx(m["psnr_masked"] - m["baselines"][best]["psnr_masked"])
     # the printed table
-    for text in ("neighbour mean", "DIS flow interpolation", "margin over the", "end-point error model"):
+    for text in ("neighbour mean", "DIS flow interpolation", "margin over the", "end-point error model",
+                 "depth vs the depth maps"):
         assert text in out, out
     assert f"{m['margin']['psnr']:+.2f} dB" in out
     # the figures: a plot, and the worst frame as ground truth | render | error at full resolution

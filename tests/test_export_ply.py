@@ -65,6 +65,22 @@ def test_export_centre_covariance_colour_and_culling(tmp_path):
         assert np.all(r[[col["nx"], col["ny"], col["nz"]]] == 0)
 
 
+def test_export_scale_multiplies_positions_and_sizes_only(tmp_path):
+    g = Gaussians.random(30, seed=5)
+    g.means[:, 3] = 0.5
+    export_ply(tmp_path / "a.ply", g, 0.5)
+    export_ply(tmp_path / "b.ply", g, 0.5, scale=2.5)
+    props, a = read_ply(tmp_path / "a.ply")
+    b = read_ply(tmp_path / "b.ply")[1]
+    col = {p: i for i, p in enumerate(props)}
+    xyz = [col["x"], col["y"], col["z"]]
+    logs = [col["scale_0"], col["scale_1"], col["scale_2"]]
+    np.testing.assert_allclose(b[:, xyz], 2.5 * a[:, xyz], rtol=1e-6)
+    np.testing.assert_allclose(b[:, logs], a[:, logs] + math.log(2.5), rtol=1e-5, atol=1e-5)
+    rest = [i for i in range(len(props)) if i not in xyz + logs]
+    np.testing.assert_array_equal(b[:, rest], a[:, rest])
+
+
 def test_low_degree_padding_empty_and_atomic(tmp_path):
     g = Gaussians.random(3, seed=1, degree=1, nt=1)
     g.means[:, 3] = 0.5

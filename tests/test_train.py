@@ -52,6 +52,32 @@ def test_resume_continues_from_checkpoint(rt, tiny_scene, tmp_path):
     assert tr2.step == 60
 
 
+def test_a_run_keeps_its_scene_units(rt, tiny_scene, tmp_path):
+    """Checkpoints record the scene units; resuming and load_run use them, and a checkpoint from
+    before scene units (no world_scale) is read in the files' own units."""
+    from endowave_cl.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.run_io import load_run
+    from endowave_cl.train.trainer import Trainer
+    scene = load_scene(tiny_scene)
+    assert scene.world_scale != 1.0
+    run = tmp_path / "run"
+    Trainer(scene, _cfg(iterations=20, use_flow=False), run, rt, log=lambda s: None).train(progress=False)
+    ck_path = latest_checkpoint(run)
+    ck = load_checkpoint(ck_path)
+    assert ck["extra"]["world_scale"] == scene.world_scale
+    assert load_run(run).scene.world_scale == scene.world_scale
+    # the same checkpoint without the key, as an older version wrote it
+    extra = {k: v for k, v in ck["extra"].items() if k != "world_scale"}
+    save_checkpoint(ck_path, ck["gaussians"], ck["adam_state"], ck["step"], ck["config"], extra)
+    assert load_run(run).scene.world_scale == 1.0
+    fresh = load_scene(tiny_scene)
+    tr = Trainer(fresh, _cfg(iterations=25, use_flow=False), run, rt, log=lambda s: None)
+    assert tr.step == 20 and fresh.world_scale == 1.0
+    np.testing.assert_allclose(fresh.frames[0].depth, load_scene(tiny_scene, world_scale=1.0).frames[0].depth,
+                               rtol=1e-5)
+
+
 def _cli(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "endowave_cl", *args], capture_output=True, text=True,
                           cwd=cwd, timeout=600)

@@ -40,19 +40,16 @@ VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wa
 
 
 def depth_error(rt, params, scene) -> float:
-    """Mean |rendered depth - ground truth| (scene units) over the test frames' valid tissue pixels;
-    the rendered depth is divided by the accumulated alpha (the expected depth of what is seen)."""
-    import numpy as np
-
+    """Mean |rendered depth - depth map| over the test frames' valid tissue pixels, in the units of
+    the scene's depth files (evaluation.py's depth figures, without the rest of an evaluation)."""
+    from endowave_cl.evaluation import _depth_row, _depth_summary
     from endowave_cl.render import render
-    errs = []
+    rows = []
     for k in scene.test_indices:
         f = scene.frames[k]
         h = render(rt, params, f.camera, f.time).host()
-        pred = h["depth"] / np.maximum(h["alpha"], 1e-6)
-        valid = (f.depth > 0) & (np.ones_like(f.depth, bool) if f.mask is None else f.mask > 0.5)
-        errs.append(np.abs(pred - f.depth)[valid])
-    return float(np.concatenate(errs).mean())
+        rows.append({"depth": _depth_row(h["depth"], h["alpha"], f)})
+    return _depth_summary(rows, scene.world_scale)["mae"]
 
 
 def _stat(rows, get, nd: int = 3):

@@ -99,6 +99,7 @@ def main(argv=None) -> int:
               + ", ".join(f"{n} {_fmt(v['psnr'])}" for n, v in b.items())
               + f"; margin {_fmt(m.get('margin', {}).get('psnr'))}"
               + (f"; flow EPE {_fmt(fl['model_epe'], 3)} px (DIS {_fmt(fl['dis_epe'], 3)})" if fl else "")
+              + (f"; depth MAE {m['depth']['mae']:.4g} ({100 * m['depth']['relative']:.2f}%)" if m.get("depth") else "")
               + f"; {m['gaussians']} Gaussians, {m['steps']} steps, {m['train_seconds']:.0f} s training "
               f"({time.perf_counter() - t0:.0f} s in all); load now {os.getloadavg()[0]:.2f}")
         sys.stdout.flush()
@@ -110,7 +111,8 @@ def main(argv=None) -> int:
         parts = []
         for label, key, sub in (("test PSNR", "psnr", None), ("masked", "psnr_masked", None), ("SSIM", "ssim", None),
                                 ("LPIPS", "lpips", None), ("train PSNR", "train_psnr", None),
-                                ("margin", "margin", "psnr"), ("flow EPE", "flow", "model_epe")):
+                                ("margin", "margin", "psnr"), ("flow EPE", "flow", "model_epe"),
+                                ("depth MAE", "depth", "mae")):
             mu, sd = ms(key, sub)
             if mu is not None:
                 parts.append(f"{label} {mu:.3f} +- {sd:.3f}")

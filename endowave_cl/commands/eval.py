@@ -46,6 +46,10 @@ def table(m: dict) -> str:
                      f"end-point error model {fl['model_epe']:.3f} px, DIS on the two frames "
                      f"{fl['dis_epe']:.3f} px, zero flow {fl['gt_magnitude']:.3f} px; "
                      f"mean magnitude model {fl['model_magnitude']:.3f} px, true {fl['gt_magnitude']:.3f} px")
+    dp = m.get("depth")
+    if dp is not None:
+        lines.append(f"depth vs the depth maps ({dp['frames']} test frames, {dp['pixels']} tissue pixels): mean "
+                     f"absolute error {dp['mae']:.4g} (the depth files' units), {100 * dp['relative']:.2f}% of the depth")
     lp_note = "" if m["lpips"] is not None else "  (LPIPS n/a: install the [metrics] extra)"
     lines.append("PSNR: whole image of masked images; masked: tissue pixels only; LPIPS-Alex" + lp_note)
     return "\n".join(lines)

@@ -33,6 +33,9 @@ def run(args) -> int:
     if ck is None:
         raise EndowaveError(f"{args.run}: no checkpoint_*.npz found")
     g = state["gaussians"]
-    n = export_ply(out, g, args.time)
-    print(f"wrote {out} ({n if n is not None else '?'} Gaussians at t = {args.time})")
+    from ..run_io import run_world_scale
+    world_scale = run_world_scale(state, ck)
+    n = export_ply(out, g, args.time, scale=1.0 / world_scale)   # in the scene files' units
+    print(f"wrote {out} ({n if n is not None else '?'} Gaussians at t = {args.time}, in the units of "
+          f"the scene's depth files and poses)")
     return 0

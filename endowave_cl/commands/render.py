@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-DEPTH_PNG_SCALE = 1000.0   # 16-bit depth PNGs store depth x 1000 (millimetres when the scene is in metres)
+DEPTH_PNG_SCALE = 1000.0   # 16-bit depth PNGs store depth x 1000 in the units of the scene's files
+                           # (millimetres when they are in metres)
 
 
 def add_arguments(p) -> None:
@@ -51,7 +52,8 @@ def run(args) -> int:
         img = np.clip(h["image"], 0, 1)
         if k in idx:
             write_png_atomic(out / "frames" / f"{f.name or k:0>6}.png", img)
-            d = np.clip(h["depth"] / np.maximum(h["alpha"], 1e-6) * DEPTH_PNG_SCALE, 0, 65535).astype(np.uint16)
+            d = h["depth"] / np.maximum(h["alpha"], 1e-6) / r.scene.world_scale   # [H, W] file units
+            d = np.clip(d * DEPTH_PNG_SCALE, 0, 65535).astype(np.uint16)
             write_png_atomic(out / "depth" / f"{f.name or k:0>6}.png", d)
         if not args.no_video:
             video_frames.append((img * 255 + 0.5).astype(np.uint8)[..., ::-1])

@@ -37,6 +37,17 @@ VIEWPOINT_TOL = 1e-6
 # A downscaled mask pixel counts as tissue only if all full-size pixels under it were tissue
 # (area-averaged value at least this).
 MASK_KEEP = 0.999
+# Scene units.  A 4D Gaussian moves by turning in the space-time planes, and how far it must turn
+# for a given image motion depends on how space is measured against time (time is [0, 1] over the
+# sequence): the same scene in other depth units trains differently (docs/QUALITY.md, finding 18).
+# So the loader measures space in units that put the scene's typical depth at SCENE_DEPTH: the
+# median valid depth of the training frames, or without depth maps the depth-free prior plane
+# (PRIOR_NEAR_FLOOR below).  4 is the depth the defaults were validated at (the synthetic scenes'
+# tissue lies at 2-6 units, the prior plane of the real pulling frames at 3.3).
+SCENE_DEPTH = 4.0
+# The depth-free prior plane sits at sqrt(near * far), the bounds' midpoint in log-depth; a near
+# bound of 0 carries no scale and is replaced by far * PRIOR_NEAR_FLOOR.
+PRIOR_NEAR_FLOOR = 1e-3
 
 
 @dataclass
@@ -44,7 +55,7 @@ class Frame:
     index: int                     # position in the sequence, 0..N-1
     time: float                    # index / (N - 1), in [0, 1]
     image: np.ndarray              # [H, W, 3] float32 RGB in [0, 1]
-    depth: Optional[np.ndarray]    # [H, W] float32 in scene units (file units without depth_scale), 0 = invalid
+    depth: Optional[np.ndarray]    # [H, W] float32 in scene units (Scene.world_scale), 0 = invalid
     mask: Optional[np.ndarray]     # [H, W] float32, 1 = tissue to supervise, 0 = tool
     camera: Camera                 # OpenCV convention, world -> camera viewmat
     name: str = ""                 # stem of the image file, e.g. "000012"
@@ -56,8 +67,8 @@ class Scene:
     frames: List[Frame]
     train_indices: List[int]
     test_indices: List[int]
-    near: float                    # min of the near bounds in poses_bounds.npy
-    far: float                     # max of the far bounds
+    near: float                    # min of the near bounds in poses_bounds.npy (scene units)
+    far: float                     # max of the far bounds (scene units)
     width: int
     height: int
     has_depth: bool
@@ -66,6 +77,7 @@ class Scene:
     depth_scale: Optional[float] = None   # from scene.json; None = depth in raw file units
     hwf_layout: str = "hwf"
     info: dict = field(default_factory=dict)   # scene.json content
+    world_scale: float = 1.0       # scene units per file unit (depth after depth_scale, pose translations, bounds)
 
     def summary(self) -> str:
         """One line: what was found and what the trainer will do with it."""
@@ -78,7 +90,25 @@ class Scene:
         effects = ["depth loss " + ("on" if self.has_depth else "off")]
         effects.append("tool pixels excluded" if self.has_masks else "every pixel supervised")
         split = f"{len(self.train_indices)} train / {len(self.test_indices)} test"
-        return f"{', '.join(parts)}: {', '.join(effects)}; {split}"
+        return (f"{', '.join(parts)}: {', '.join(effects)}; {split}; scene units = file units x "
+                f"{self.world_scale:.4g}")
+
+    def set_world_scale(self, world_scale: float) -> None:
+        """Measure the scene in other units, in place: depth maps, camera translations and bounds
+        are multiplied by world_scale / self.world_scale (a run trained in other units is
+        evaluated or resumed in its own)."""
+        world_scale = float(world_scale)
+        if not (np.isfinite(world_scale) and world_scale > 0):
+            raise DataError(f"{self.path}: world_scale must be a positive number, got {world_scale!r}")
+        r = world_scale / self.world_scale
+        if r == 1.0:
+            return
+        for f in self.frames:
+            if f.depth is not None:
+                f.depth = (f.depth * np.float32(r)).astype(np.float32)
+            f.camera = _rescaled_camera(f.camera, r)
+        self.near, self.far = self.near * r, self.far * r
+        self.world_scale = world_scale
 
     def one_viewpoint(self) -> bool:
         """Whether every training frame's camera centre is the same point (a fixed endoscope), to
@@ -167,13 +197,37 @@ def clip_depth(depth: np.ndarray, percentiles) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def _rescaled_camera(camera: Camera, r: float) -> Camera:
+    """The camera of a world whose coordinates are multiplied by r (translation x r)."""
+    V = camera.viewmat.astype(np.float64).copy()
+    V[:3, 3] *= r
+    return Camera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, V, camera.near)
+
+
+def prior_plane_depth(near: float, far: float) -> float:
+    """Depth of the fronto-parallel prior surface of a scene without depth maps: sqrt(near * far)
+    with a near bound of 0 replaced by far * PRIOR_NEAR_FLOOR (scale-free: the arithmetic midpoint
+    would sit far behind the tissue)."""
+    return float(np.sqrt(max(near, far * PRIOR_NEAR_FLOOR) * far))
+
+
+def unit_world_scale(depth_maps, near: float, far: float) -> float:
+    """The world_scale that puts the scene's typical depth at SCENE_DEPTH: the median of the valid
+    (> 0) values of depth_maps (the training frames', in file units), or without any the prior
+    plane's depth from the bounds."""
+    vals = [np.asarray(d)[np.asarray(d) > 0] for d in depth_maps if d is not None]
+    vals = [v for v in vals if v.size]
+    ref = float(np.median(np.concatenate(vals))) if vals else prior_plane_depth(near, far)
+    return SCENE_DEPTH / ref if ref > 0 and np.isfinite(ref) else 1.0
+
+
 def _downscaled_size(width, height, downscale):
     return int(round(width / downscale)), int(round(height / downscale))
 
 
 def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCENTILES,
                hwf_layout: str = "auto", use_depth: bool = True, use_masks: bool = True,
-               test_every: int = TEST_EVERY) -> Scene:
+               test_every: int = TEST_EVERY, world_scale: Optional[float] = None) -> Scene:
     """Load an EndoNeRF-layout scene.
 
     path:              the scene folder (images/, poses_bounds.npy, optional depth/, masks/, scene.json).
@@ -184,6 +238,9 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
     hwf_layout:        "auto" (scene.json "hwf_layout" if present, else detected, see llff.py),
                        "hwf" (EndoNeRF) or "cy_cx_f" (StereoMIS conversions).
     use_depth/use_masks: ignore depth/ or masks/ even when present.
+    world_scale:       scene units per file unit; None: unit_world_scale (the median depth of the
+                       training frames at SCENE_DEPTH, measured on the depth maps at full size,
+                       read for it even with use_depth=False, so that every use of a scene agrees).
     Raises DataError naming the file for missing poses, frame-count mismatches, unreadable or
     truncated images, sizes that disagree, and depth maps with no valid pixel.
     """
@@ -204,7 +261,8 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
     if poses.shape[0] != n:
         raise DataError(f"{path / 'poses_bounds.npy'}: {poses.shape[0]} poses but {n} images in "
                         f"{img_dir} (frame count mismatch)")
-    depth_files = _optional_files(path / "depth", n, "depth") if use_depth else None
+    all_depth_files = _optional_files(path / "depth", n, "depth")
+    depth_files = all_depth_files if use_depth else None
     mask_files = _optional_files(path / "masks", n, "mask") if use_masks else None
     depth_scale = info.get("depth_scale")
 
@@ -221,20 +279,18 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
     # the size most images share is the scene's: an image of another size is named (whichever
     # frame it is) rather than the first depth map or mask compared with it
     width, height = _common_size(images)
-    frames = []
+    train, test = split_indices(n, test_every)
+    train_set = set(train)
+    frames, full_depth = [], {}   # full_depth: the training frames' depth maps at full size
     resolved_layout = None
     for i, img_path in enumerate(images):
         image = read_rgb(img_path)
         _check_size(image, img_path, width, height, "the other images" if n > 1 else "the images")
         depth = mask = None
         if depth_files is not None:
-            depth = read_depth_raw(depth_files[i])
-            _check_size(depth, depth_files[i], width, height)
-            if not np.any(depth > 0):
-                raise DataError(f"{depth_files[i]}: depth map has no valid (non-zero) pixel")
-            if depth_scale is not None:
-                depth = depth * np.float32(depth_scale)
-            depth = clip_depth(depth, depth_percentiles)
+            depth = _read_depth(depth_files[i], width, height, depth_scale, depth_percentiles)
+            if i in train_set:
+                full_depth[i] = depth
         if mask_files is not None:
             mask = read_tissue_mask(mask_files[i])
             _check_size(mask, mask_files[i], width, height)
@@ -260,9 +316,26 @@ def load_scene(path, downscale: float = 1, depth_percentiles=DEFAULT_DEPTH_PERCE
         frames.append(Frame(index=i, time=i / (n - 1) if n > 1 else 0.0, image=image, depth=depth,
                             mask=mask, camera=camera, name=img_path.stem))
 
-    train, test = split_indices(n, test_every)
-    return Scene(path=path, frames=frames, train_indices=train, test_indices=test, near=near,
-                 far=far, width=frames[0].camera.width, height=frames[0].camera.height,
-                 has_depth=depth_files is not None, has_masks=mask_files is not None,
-                 downscale=float(downscale), depth_scale=depth_scale, hwf_layout=resolved_layout,
-                 info=info)
+    scene = Scene(path=path, frames=frames, train_indices=train, test_indices=test, near=near,
+                  far=far, width=frames[0].camera.width, height=frames[0].camera.height,
+                  has_depth=depth_files is not None, has_masks=mask_files is not None,
+                  downscale=float(downscale), depth_scale=depth_scale, hwf_layout=resolved_layout,
+                  info=info)
+    if world_scale is None:
+        maps = [full_depth[i] if i in full_depth else
+                _read_depth(all_depth_files[i], width, height, depth_scale, depth_percentiles)
+                for i in train] if all_depth_files is not None else []
+        world_scale = unit_world_scale(maps, near, far)
+    scene.set_world_scale(world_scale)
+    return scene
+
+
+def _read_depth(file: Path, width: int, height: int, depth_scale, depth_percentiles) -> np.ndarray:
+    """One depth map in file units (times depth_scale), its valid values clipped to the percentiles."""
+    depth = read_depth_raw(file)
+    _check_size(depth, file, width, height)
+    if not np.any(depth > 0):
+        raise DataError(f"{file}: depth map has no valid (non-zero) pixel")
+    if depth_scale is not None:
+        depth = depth * np.float32(depth_scale)
+    return clip_depth(depth, depth_percentiles)

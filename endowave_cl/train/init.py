@@ -8,8 +8,9 @@ Without depth (a frame whose depth is None): the same with a constant depth D: a
 surface covering the view.  D is the median of the valid depths of the other training frames when
 some have depth, else sqrt(near * far), the midpoint of the bounds in log-depth (scale-free: the
 bounds of endoscopic scenes span orders of magnitude, e.g. [0.03, 250] for StereoMIS, where the
-arithmetic midpoint would sit far behind the tissue); a near bound of 0 is replaced by far / 1000.  Seen from the training camera such a
-surface reproduces the frame exactly; training then moves it.
+arithmetic midpoint would sit far behind the tissue); a near bound of 0 is replaced by far / 1000
+(data/scene.py prior_plane_depth; the loader's scene units put that plane at SCENE_DEPTH).  Seen
+from the training camera such a surface reproduces the frame exactly; training then moves it.
 
 Per Gaussian:
 - colour: TEASH DC term sh[:, 0, 0, :] = (rgb - 0.5) / SH_C0 of its pixel, every other term 0;
@@ -28,6 +29,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
+from ..data.scene import prior_plane_depth
 from ..errors import EndowaveError
 from ..gaussians import Gaussians, num_sh_bases
 
@@ -36,7 +38,6 @@ INIT_OPACITY = 0.1
 TIME_SCALE_FRAMES = 2.0       # time std in units of the training frame spacing
 UNTRUSTED_TIME_SCALE_FRAMES = 1.0   # time std where the flow is not trusted (init_gaussians)
 VISIBLE_WITHIN = 1.18         # |t - mu_t| < 1.18 sigma_t: marginal weight above one half
-NEAR_FLOOR = 1e-3             # a near bound of 0 carries no scale: use far / 1000 instead
 MASK_THRESHOLD = 0.5          # mask values are 0 / 1; anything above 0.5 is supervised tissue
 
 
@@ -65,7 +66,7 @@ def prior_depth(frames, train_indices: Sequence[int], near: float, far: float) -
     if not (far > 0 and near >= 0):
         raise EndowaveError(f"init: the depth bounds must satisfy 0 <= near, 0 < far to place the initial "
                             f"surface (near {near}, far {far})")
-    return float(math.sqrt(max(near, far * NEAR_FLOOR) * far))
+    return prior_plane_depth(near, far)
 
 
 def _valid_pixels(frame, default_depth: float) -> tuple:

@@ -413,7 +413,7 @@ class RunSession:
             raise EndowaveError(f"{self.run_dir}: the run folder lock was released; not saving")
         path = checkpoint_path(self.run_dir, trainer.step)
         psnr = None if not self.ema else self.ema.get("psnr")
-        extra = {"extent": trainer.extent, "scene": str(trainer.scene.path),
+        extra = {"extent": trainer.extent, "scene": str(trainer.scene.path), "world_scale": trainer.scene.world_scale,
                  "scene_fingerprint": self.fingerprint, "center": self.center,
                  "rng_state": trainer.rng.bit_generator.state, "ema": self.ema,
                  "history": trainer.history, "train_psnr": psnr}

@@ -86,6 +86,8 @@ class Trainer:
         ckpt_path, ck = self._run.resume_point(scene)   # newest readable checkpoint of this scene
         if ck is not None:
             g = ck["gaussians"]
+            # the run's own scene units (1.0: a run from before the loader measured them)
+            scene.set_world_scale(float(ck["extra"].get("world_scale", 1.0)))
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
             self.cfg.sh_degree = g.sh_degree     # the model's layout, whatever the config resolved to
