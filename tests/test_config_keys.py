@@ -708,7 +708,7 @@ CHECKS = {
     "opacity_reset_value": _opacity_reset_value,
     "lambda_rgb": _loss_effect("lambda_rgb", 2.0, _total_changes("rgb", 1.0)),
     "lambda_dssim": _loss_effect("lambda_dssim", 0.5, _lambda_dssim),
-    "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.0)),
+    "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.9)),
     "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
     "lambda_flow_gaussian": _gaussian_flow_effect,
