@@ -43,7 +43,7 @@ MASK_KEEP = 0.999
 # So the loader measures space in units that put the scene's typical depth at SCENE_DEPTH: the
 # median valid depth of the training frames, or without depth maps the depth-free prior plane
 # (PRIOR_NEAR_FLOOR below).  4 is the depth the defaults were validated at (the synthetic scenes'
-# tissue lies at 2-6 units, the prior plane of the real pulling frames at 3.3).
+# tissue lies at 2-6 units, the prior plane of the real pulling frames at 3.8).
 SCENE_DEPTH = 4.0
 # The depth-free prior plane sits at sqrt(near * far), the bounds' midpoint in log-depth; a near
 # bound of 0 carries no scale and is replaced by far * PRIOR_NEAR_FLOOR.
