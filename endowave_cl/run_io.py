@@ -52,13 +52,12 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
 
 def run_world_scale(state, where) -> float:
     """The scene units a checkpoint was trained in (data/scene.py world_scale); 1.0 before they existed."""
-    import numpy as np
+    import math
     raw = state.get("extra", {}).get("world_scale", 1.0)
-    v = raw
     try:
-        v = float(v)
+        v = float(raw)
     except (TypeError, ValueError):
-        v = float("nan")
-    if not (np.isfinite(v) and v > 0):
+        v = math.nan
+    if not (math.isfinite(v) and v > 0):
         raise EndowaveError(f"{where}: world_scale {raw!r} is not a positive number")
     return v

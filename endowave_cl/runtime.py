@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 import threading
@@ -386,8 +387,7 @@ class Runtime:
         tuple) and dtype.  The same array as ``pyopencl.array.empty(queue, shape, dtype,
         allocator=rt.pool())``, made without pyopencl's per-call checks of the shape (about 40 us
         a call on the CPU, against 5 us here; a training step makes about a hundred)."""
-        shape = (int(shape),) if isinstance(shape, (int, np.integer)) else tuple(int(s) for s in shape)
-        return new_array(self.queue, shape, dtype, allocator=self.pool())
+        return new_array(self.queue, _as_shape(shape), dtype, allocator=self.pool())
 
     def dummy_buffer(self):
         """A 4-byte placeholder for kernel arguments that are absent or empty (pyopencl gives
@@ -550,6 +550,11 @@ def get_runtime(spec: Optional[str] = None) -> Runtime:
     return rt
 
 
+def _as_shape(shape) -> Tuple[int, ...]:
+    """An int or a sequence of ints as a tuple of Python ints."""
+    return (int(shape),) if isinstance(shape, (int, np.integer)) else tuple(int(s) for s in shape)
+
+
 def _c_strides(shape: Tuple[int, ...], itemsize: int) -> Tuple[int, ...]:
     strides, step = [], itemsize
     for n in reversed(shape):
@@ -569,9 +574,7 @@ def new_array(queue, shape: Tuple[int, ...], dtype, allocator=None, data=None, o
     microseconds; falls back to the checked constructor where a pyopencl lacks it."""
     import pyopencl.array as cla
     dtype = np.dtype(dtype)
-    size = 1
-    for n in shape:
-        size *= n
+    size = math.prod(shape)
     if _FAST_ARRAYS[0]:
         try:
             return cla.Array(None, shape, dtype, allocator=allocator, data=data, offset=offset,
@@ -586,11 +589,8 @@ def view(arr, shape):
     """arr (a C-contiguous pyopencl Array) seen with another shape of the same size: no copy, the
     same memory and events.  What ``arr.reshape(shape)`` gives, without its per-call checks; a
     non-contiguous arr or a size that differs raises ValueError."""
-    shape = (int(shape),) if isinstance(shape, (int, np.integer)) else tuple(int(s) for s in shape)
-    size = 1
-    for n in shape:
-        size *= n
-    if size != arr.size:
+    shape = _as_shape(shape)
+    if math.prod(shape) != arr.size:
         raise ValueError(f"view: cannot see {arr.size} elements as {shape}")
     if tuple(arr.strides) != _c_strides(tuple(arr.shape), arr.dtype.itemsize) and arr.size > 1:
         raise ValueError("view: the array is not C-contiguous")

@@ -105,7 +105,7 @@ class Scene:
             return
         for f in self.frames:
             if f.depth is not None:
-                f.depth = (f.depth * np.float32(r)).astype(np.float32)
+                f.depth = f.depth * np.float32(r)   # float32
             f.camera = _rescaled_camera(f.camera, r)
         self.near, self.far = self.near * r, self.far * r
         self.world_scale = world_scale

@@ -65,7 +65,6 @@ def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int, compact: bool):
     the visible Gaussians' depth patterns: the same order as the full keys in fewer bits."""
     n = int(depth.size)
     q = rt.queue
-    al = rt.pool()
     if n == 0:
         return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0,
                           cla.zeros(q, 1, np.int32)), DEPTH_BITS

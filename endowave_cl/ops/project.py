@@ -170,8 +170,6 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
               channels: int = CHANNELS) -> Projected:
     """Project every Gaussian at time t (flow to t_flow when given); see docs/ARCHITECTURE.md."""
     n, nt, K, degree = _dims(params)
-    q = rt.queue
-    al = rt.pool()
     f32, i32 = np.float32, np.int32
     out = Projected(
         means2d=rt.empty((n, 2), f32), conic=rt.empty((n, 3), f32),
@@ -207,8 +205,6 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
     3 (NT + 1) K), for DeviceAdam, which forms the same values.
     """
     n, nt, K, degree = _dims(params)
-    q = rt.queue
-    al = rt.pool()
     shapes = {"v_means": (n, 4), "v_scales": (n, 4), "v_quat_l": (n, 4), "v_quat_r": (n, 4),
               "v_opacity": (n,), "v_sh": (n, nt + 1, K, 3), "v_phase": (n, nt + 1)}
     if sh_factors:

@@ -261,11 +261,9 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     ids, tile-major then depth); tile_ranges [n_tiles, 2] int32.  All pyopencl arrays.
     choice: the variant to run (default raster_choice(rt, C); the probe passes its own).
     """
-    import pyopencl.array as cla
     width, height = int(width), int(height)
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     C = int(features.shape[1])
-    q, al = rt.queue, rt.pool()
     res = RasterOut(rt.empty((height, width, C), np.float32),
                     rt.empty((height, width), np.float32),
                     rt.empty((height, width), np.float32),
@@ -305,7 +303,6 @@ def vec_bwd_options(rt, C: int, ch: RasterChoice, det: bool):
 def _vec_records(rt, means2d, conic, opac, features, opts):
     """[N, REC4] float4 per-Gaussian records of the vector kernels (rasterize_vec_prep, REC4 in
     cl/rasterize_vec.cl), or None for N = 0."""
-    import pyopencl.array as cla
     N, C = (int(s) for s in features.shape)
     if N == 0:
         return None

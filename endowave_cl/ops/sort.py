@@ -87,11 +87,9 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     if n >= 2 ** 31 - cfg.wg * cfg.items_max:
         raise ValueError(f"radix_sort_pairs handles fewer than 2^31 keys, got {n}")
 
-    q = rt.queue
     items = cfg.items_for(n, rt.compute_units)
     n_blocks = -(-n // (cfg.wg * items))
     radix = 1 << cfg.radix_bits
-    al = rt.pool()
     hist = rt.empty(radix * n_blocks, np.int32)     # [radix, n_blocks]
     offsets = rt.empty(radix * n_blocks, np.int32)  # [radix, n_blocks]
     bufs = [(rt.empty(n, np.uint64), rt.empty(n, np.int32))]

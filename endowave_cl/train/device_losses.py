@@ -131,7 +131,6 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
                          wavelet_config=None) -> PendingLosses:
     """image_losses_and_grad without the read-back: the kernels are enqueued, nothing is read."""
     import pyopencl as cl
-    import pyopencl.array as cla
 
     if features.ndim != 3 or features.dtype != np.float32:
         raise ValueError(f"features must be a float32 [H, W, C] array, got {features.dtype} {features.shape}")
@@ -141,7 +140,6 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     if CF < 3 or not (3 <= channels["depth"] < CF and 3 <= channels["flow"] and channels["flow"] + 1 < CF):
         raise ValueError(f"channels {channels} do not fit the {CF} rendered channels (colour in 0..2)")
     npix = H * W
-    q = rt.queue
     opts = [f"-DCF={CF}", f"-DCH_DEPTH={int(channels['depth'])}", f"-DCH_FLOW={int(channels['flow'])}"]
     use_depth = bool(cfg.use_depth and cfg.lambda_depth > 0 and tgt.depth is not None)
     use_flow = bool(cfg.use_flow and cfg.lambda_flow > 0 and tgt.flow is not None)
