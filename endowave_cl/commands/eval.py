@@ -3,7 +3,9 @@ images), SSIM, LPIPS-Alex (with the [metrics] extra; else n/a) and rendering FPS
 after warm-up), beside three baselines scored the same way on the same frames: the mean of the
 neighbouring training frames and a DIS optical-flow interpolation between them with bilinear and
 with bicubic warps, with the model's margin over the best one.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
-end-point error of the flow the model renders, beside DIS's on the same pixels.
+end-point error of the flow the model renders, beside DIS's on the same pixels; on a scene with
+depth maps, the error of the rendered depth on the test frames' tissue (in the depth files' units
+and relative to the depth).
 
 Writes RUN/eval.json (every figure, per frame too), RUN/eval_per_frame.png (PSNR of each test
 frame over time, model and baselines) and RUN/eval_worst.png (the model's worst test frame:

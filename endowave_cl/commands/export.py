@@ -1,4 +1,5 @@
-"""Export a trained run's model at time t as a standard 3DGS PLY (opens in common Gaussian viewers)."""
+"""Export a trained run's model at time t as a standard 3DGS PLY (opens in common Gaussian viewers),
+in the units of the scene's depth files and poses."""
 from __future__ import annotations
 
 
