@@ -127,7 +127,7 @@ def test_trainer_steps_between_frames(rt, tiny_scene, tmp_path):
     before = download(tr.params).sh.copy()
     times = []
     real_step = tr._step
-    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real_step(cam, t, t_next, dev, what))[1]
+    tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real_step(cam, t, t_next, dev, what, **kw))[1]
     tr.train(progress=False)
     train_times = {scene.frames[k].time for k in scene.train_indices}
     assert len(times) == 6 and not any(t in train_times for t in times)
@@ -244,3 +244,60 @@ def test_fused_interpolation_prefers_the_hypothesis_whose_warps_agree():
     twice, w2, _ = between_target(scene, pair, 0.5, extra=[pair])
     np.testing.assert_allclose(twice, right, atol=1e-6)
     assert weight.min() == 1.0 and w2.min() == 1.0
+
+
+def test_between_target_blends_the_models_motion():
+    """model_disp: the pair's frames warped along the model's displacement to the first frame (and
+    the same motion scaled to the second) are blended in with model_weight.  Exact motion gives the
+    translated frame; a still model gives the two frames' mean; weight 0 leaves the flow's target."""
+    from endowave_cl.baselines import mean_interpolation
+    from endowave_cl.train.between import between_target
+    scene, pair, _ = _scene_and_pair()
+    H, W = scene.height, scene.width
+    inner = (slice(6, -6), slice(6, -6))
+    flow_only, w0, t0 = between_target(scene, pair, 0.25)
+    # the texture moves by (4, -2) px from frame 0 to frame 2: at s = 0.25 a pixel of the frame at
+    # s lies at p - 0.25 * (4, -2) in frame 0
+    exact = np.broadcast_to(np.float32([-1.0, 0.5]), (H, W, 2)).copy()
+    for weight in (0.5, 1.0):
+        image, w, t = between_target(scene, pair, 0.25, model_disp=exact, model_weight=weight)
+        assert t == t0
+        np.testing.assert_array_equal(w, w0)
+        np.testing.assert_allclose(image[inner], flow_only[inner], atol=2e-3)
+    still = np.zeros((H, W, 2), np.float32)
+    image, _, _ = between_target(scene, pair, 0.25, model_disp=still, model_weight=1.0)
+    np.testing.assert_allclose(image, mean_interpolation(scene.frames[0].image, scene.frames[2].image, 0.25),
+                               atol=1e-6)
+    half, _, _ = between_target(scene, pair, 0.25, model_disp=still, model_weight=0.5)
+    np.testing.assert_allclose(half, 0.5 * flow_only + 0.5 * image, atol=1e-6)
+    same, _, _ = between_target(scene, pair, 0.25, model_disp=still, model_weight=0.0)
+    np.testing.assert_array_equal(same, flow_only)
+
+
+def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tmp_path):
+    """between_model > 0: from densify_until on, each in-between step's forward renders the flow to
+    the pair's first frame and the target is made from it; before, and with weight 0, never."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.train.trainer import Trainer
+    scene = load_scene(tiny_scene)
+    train_times = {scene.frames[k].time for k in scene.train_indices}
+    for weight, start, want in ((0.5, 3, 3), (0.0, 0, 0)):
+        tr = Trainer(scene, tiny_config(iterations=6, init_points=2000, between_prob=1.0, densify_from=1000,
+                                        densify_until=start, between_model=weight, log_every=1),
+                     tmp_path / f"run{weight}", rt, log=lambda s: None)
+        calls, forwards = [], []
+        real_motion, real_step = tr.rendered_motion, tr._step
+
+        def spy(out):
+            disp = real_motion(out)
+            calls.append((tr.step, out.t, out.t_flow, disp.shape))
+            return disp
+        tr.rendered_motion = spy
+        tr._step = lambda cam, t, t_next, dev, what, out=None: (forwards.append(out), real_step(cam, t, t_next, dev, what, out))[1]
+        tr.train(progress=False)
+        assert len(calls) == want
+        for step, t, t_to, shape in calls:
+            assert step >= start and t_to in train_times and t > t_to
+            assert shape == (scene.height, scene.width, 2)
+        # the render that gave the motion is the step's own forward: no second render
+        assert sum(f is not None for f in forwards) == want

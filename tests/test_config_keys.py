@@ -464,7 +464,7 @@ def _between_prob(scene, rt, tmp_path):
         tr = _trainer(scene, rt, tmp_path / str(prob), iterations=4, between_prob=prob, densify_from=100)
         times = []
         real = tr._step
-        tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
+        tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real(cam, t, t_next, dev, what, **kw))[1]
         tr.train(progress=False)
         assert len(times) == 4 and sum(t not in train_times for t in times) == want
 
@@ -483,7 +483,7 @@ def _between_anneal_final(scene, rt, tmp_path):
                   densify_from=100, densify_until=3)
     times = []
     real = tr._step
-    tr._step = lambda cam, t, t_next, dev, what: (times.append(t), real(cam, t, t_next, dev, what))[1]
+    tr._step = lambda cam, t, t_next, dev, what, **kw: (times.append(t), real(cam, t, t_next, dev, what, **kw))[1]
 
     class HalfDraw:    # the trainer's generator, except that every chance draw is 0.5
         def __init__(self, rng):
@@ -665,6 +665,31 @@ def _between_flows(scene, rt, tmp_path):
         validate_config(TrainConfig(between_flows="dis,raft"), "cfg.toml")
 
 
+def _between_model(scene, rt, tmp_path):
+    """between_model: after densify_until the drawn in-between target blends in the pair's frames
+    warped along the model's own rendered motion, with this weight; it is a weight in [0, 1]."""
+    from endowave_cl.train.between import between_target
+    from endowave_cl.train.config import validate_config
+    tr = _trainer(scene, rt, tmp_path / "model", iterations=0, between_prob=1.0, densify_until=0,
+                  between_model=0.5)
+    from endowave_cl.render import render
+
+    def motion(camera, t, t_to):
+        return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
+    _, _, dev = tr._between.draw(np.random.default_rng(3), motion, 0.5)
+    rng = np.random.default_rng(3)
+    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+    s = float(rng.uniform(0.0, 1.0))
+    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+    disp = motion(f0.camera, (1 - s) * f0.time + s * f1.time, f0.time)
+    want = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, model_disp=disp, model_weight=0.5)[0]
+    alone = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)[0]
+    np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+    assert not np.allclose(dev.image.get(), alone, atol=1e-4)
+    with pytest.raises(EndowaveError, match="between_model"):
+        validate_config(TrainConfig(between_model=1.5), "cfg.toml")
+
+
 CHECKS = {
     "iterations": _loop_effect("iterations", 4, _iterations),
     "minutes": _minutes,
@@ -720,6 +745,7 @@ CHECKS = {
     "flow_anneal_final": _flow_anneal_final,
     "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,
+    "between_model": _between_model,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -24,6 +24,15 @@ where it is wrong, they disagree.  ``fused_interpolation`` weighs the hypotheses
 disagreement, E_h = box mean over (2 FUSE_RADIUS + 1)^2 pixels of sum_c |W0_h - W1_h|, with
 weights exp(-(E_h - min_h E_h) / FUSE_TAU) normalised over h, and blends their interpolations
 (1 - s) W0_h + s W1_h.  No frame at s is needed: the choice uses only the two training frames.
+
+The model's own motion (``between_model``, after densify_until): by then the Gaussians' motion is
+fitted to every training frame, not to one pair's flow.  The step's forward also renders the flow
+channels to the pair's first frame, d0(p) (where the tissue under p at s was at t_k); the means
+move linearly in time, so d1 = -(1 - s) / s d0 is where it will be at t_k'.  The two frames warped
+along (d0, d1) are a second prediction of the frame at s whose errors differ from the flow
+interpolation's, and the target is their blend, (1 - w) flow target + w ((1 - s) I_k(p + d0) +
+s I_k'(p + d1)).  On the pulling frames the blend of the two predictions is nearer the held-out
+frames than either alone (docs/QUALITY.md finding 19).
 """
 from __future__ import annotations
 
@@ -83,13 +92,17 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
 
 
 def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
-                   extra: Sequence[object] = ()) -> Tuple[np.ndarray, np.ndarray, float]:
+                   extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
+                   model_weight: float = 0.0) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
     instead of each frame's own.  sampler: how the frames are sampled between pixels
     (baselines.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
-    two frames from other estimators, fused with the pair's own (fused_interpolation)."""
+    two frames from other estimators, fused with the pair's own (fused_interpolation).  model_disp
+    [H, W, 2]: where each pixel of the model's render at s lies in the pair's first frame (its
+    rendered flow to that time); the two frames warped along it (the second along the same motion
+    scaled to its time) are blended into the target with model_weight."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     warps, valid = [], []
     for p in (pair, *extra):
@@ -107,6 +120,16 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         image, weight = ((1.0 - s) * warps[0][0] + s * warps[0][1]).astype(np.float32), valid[0]
     else:
         image, weight = fused_interpolation(warps, s, valid)
+    if model_disp is not None and model_weight > 0.0:
+        # the Gaussians' means move linearly in time, so the displacement to the second frame is
+        # the first one scaled by the ratio of the time steps: -(1 - s) / s
+        d0 = np.asarray(model_disp, np.float32)
+        d1 = d0 * np.float32(-(1.0 - s) / s)
+        w0, w1 = sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler)
+        image = ((1.0 - model_weight) * image + model_weight * ((1.0 - s) * w0 + s * w1)).astype(np.float32)
+        for f, d in ((f0, d0), (f1, d1)):
+            if f.mask is not None:
+                weight = weight * (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
     t = (1.0 - s) * float(f0.time) + s * float(f1.time)
     return image, weight, t
 
@@ -138,14 +161,23 @@ class BetweenSampler:
     def __bool__(self) -> bool:
         return bool(self.pairs)
 
-    def draw(self, rng: np.random.Generator):
+    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0):
+        """(camera, time, device targets) of one in-between step, or None where nothing is
+        supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
+        from t to t_to, blended into the target with model_weight (between_target)."""
         from .device_losses import prepare_targets
         if self.pair_prob is None:
             pair = self.pairs[int(rng.integers(len(self.pairs)))]
         else:
             pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
         s = float(rng.uniform(0.0, 1.0))
-        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair))
+        disp = None
+        if model_flow is not None and model_weight > 0.0:
+            f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
+            t = (1.0 - s) * float(f0.time) + s * float(f1.time)
+            disp = model_flow(f0.camera, t, float(f0.time))
+        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
+                                          disp, model_weight)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight, temporary=True)

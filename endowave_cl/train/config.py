@@ -93,6 +93,11 @@ class TrainConfig:
                                     # in-between target, per pixel by how well each one's two warps
                                     # agree (train/between.py fused_interpolation); "": flow_method's
                                     # alone
+    between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
+                                    # the pair's frames warped along the motion the model itself
+                                    # renders there and the flow interpolation (train/between.py;
+                                    # 0: the flow's alone; 1: the model's alone; docs/QUALITY.md
+                                    # finding 19)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
@@ -287,7 +292,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

@@ -212,17 +212,33 @@ class Trainer:
     def train_step_between(self) -> Optional[Dict[str, float]]:
         """One optimisation step at a time between two training frames, supervised by the frame the
         pair's flow predicts there (train/between.py); None when the drawn target has no supervised
-        pixel (tool masks cover it: nothing was done)."""
-        drawn = self._between.draw(self.rng)
+        pixel (tool masks cover it: nothing was done).  With between_model after densify_until the
+        step's forward renders the flow to the pair's first frame, and the target blends in the
+        frames warped along it: one render, read back before the target is made."""
+        forward = {}
+
+        def model_motion(camera, t: float, t_to: float) -> np.ndarray:
+            forward["out"] = out = render(self.rt, self.params, camera, t, t_to)
+            return self.rendered_motion(out)
+
+        use_model = self.cfg.between_model > 0 and self.step >= self.cfg.densify_until
+        drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model)
         if drawn is None:
             return None
         camera, t, dev = drawn
-        return self._step(camera, t, None, dev, f"time {t:.4f}")
+        return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))
 
-    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str) -> Dict[str, float]:
-        """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam."""
+    @staticmethod
+    def rendered_motion(out) -> np.ndarray:
+        """[H, W, 2]: the flow channels of a render, where each pixel's Gaussians lie at t_flow."""
+        return out.features.get()[..., FLOW]
+
+    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Dict[str, float]:
+        """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam.
+        out: the step's forward when it was rendered already (train_step_between)."""
         from ..ops.util import nonfinite_flag, read_back
-        out = render(self.rt, self.params, camera, t, t_next)                            # forward
+        if out is None:
+            out = render(self.rt, self.params, camera, t, t_next)                        # forward
         pending = self.losses_enqueue(out, dev)                                          # losses
         grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
                                 v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
