@@ -301,3 +301,19 @@ def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tm
             assert shape == (scene.height, scene.width, 2)
         # the render that gave the motion is the step's own forward: no second render
         assert sum(f is not None for f in forwards) == want
+
+
+def test_between_target_with_the_models_motion_supervises_tissue_only():
+    """With tool masks, a pixel is supervised only where the model's warps show tissue too."""
+    from endowave_cl.train.between import between_target
+    H, W = 40, 56
+    mask = np.ones((H, W), np.float32)
+    mask[:, :10] = 0.0                                   # a tool along the left border
+    scene, pair, _ = _scene_and_pair(shift=(4.0, 0.0), mask=mask)
+    _, flow_weight, _ = between_target(scene, pair, 0.5)
+    # the model says the tissue at p was at p - (6, 0) in frame 0, so it will be at p + (6, 0) in frame 2
+    disp = np.broadcast_to(np.float32([-6.0, 0.0]), (H, W, 2)).copy()
+    _, weight, _ = between_target(scene, pair, 0.5, model_disp=disp, model_weight=0.5)
+    assert weight[:, :16].max() == 0.0                   # frame 0's tool seen through p - 6
+    assert weight[:, 17:].min() == 1.0
+    assert (weight <= flow_weight).all()
