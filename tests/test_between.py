@@ -272,6 +272,8 @@ def test_between_target_blends_the_models_motion():
     np.testing.assert_allclose(half, 0.5 * flow_only + 0.5 * image, atol=1e-6)
     same, _, _ = between_target(scene, pair, 0.25, model_disp=still, model_weight=0.0)
     np.testing.assert_array_equal(same, flow_only)
+    at_first, _, _ = between_target(scene, pair, 0.0, model_disp=exact, model_weight=0.5)
+    assert np.isfinite(at_first).all()                   # s = 0: no division by zero
 
 
 def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tmp_path):

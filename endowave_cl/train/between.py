@@ -122,9 +122,10 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         image, weight = fused_interpolation(warps, s, valid)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
-        # the first one scaled by the ratio of the time steps: -(1 - s) / s
+        # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
+        # frame has no weight)
         d0 = np.asarray(model_disp, np.float32)
-        d1 = d0 * np.float32(-(1.0 - s) / s)
+        d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
         w0, w1 = sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler)
         image = ((1.0 - model_weight) * image + model_weight * ((1.0 - s) * w0 + s * w1)).astype(np.float32)
         for f, d in ((f0, d0), (f1, d1)):
