@@ -110,11 +110,8 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
             d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
         else:
             d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
-        warps.append((sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler)))
-        ok = np.ones(f0.image.shape[:2], np.float32)
-        for f, d in ((f0, d0), (f1, d1)):
-            if f.mask is not None:
-                ok *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
+        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
+        warps.append((w0, w1))
         valid.append(ok)
     if len(warps) == 1:
         image, weight = ((1.0 - s) * warps[0][0] + s * warps[0][1]).astype(np.float32), valid[0]
@@ -126,13 +123,25 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         # frame has no weight)
         d0 = np.asarray(model_disp, np.float32)
         d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
-        w0, w1 = sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler)
+        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
         image = ((1.0 - model_weight) * image + model_weight * ((1.0 - s) * w0 + s * w1)).astype(np.float32)
-        for f, d in ((f0, d0), (f1, d1)):
-            if f.mask is not None:
-                weight = weight * (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
-    t = (1.0 - s) * float(f0.time) + s * float(f1.time)
-    return image, weight, t
+        weight = weight * ok
+    return image, weight, pair_time(scene, pair, s)
+
+
+def _warp_pair(f0, f1, d0, d1, sampler: str):
+    """(W0, W1 [H, W, 3], ok [H, W]): frames f0 and f1 sampled at p + d0 and p + d1 ([H, W, 2]);
+    ok 1 where both warped tool masks (bilinear) show tissue, everywhere without masks."""
+    ok = np.ones(f0.image.shape[:2], np.float32)
+    for f, d in ((f0, d0), (f1, d1)):
+        if f.mask is not None:
+            ok *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
+    return sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler), ok
+
+
+def pair_time(scene, pair, s: float) -> float:
+    """The time at fraction s between the pair's two frames."""
+    return (1.0 - s) * float(scene.frames[pair.src].time) + s * float(scene.frames[pair.dst].time)
 
 
 class BetweenSampler:
@@ -174,9 +183,8 @@ class BetweenSampler:
         s = float(rng.uniform(0.0, 1.0))
         disp = None
         if model_flow is not None and model_weight > 0.0:
-            f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-            t = (1.0 - s) * float(f0.time) + s * float(f1.time)
-            disp = model_flow(f0.camera, t, float(f0.time))
+            f0 = self.scene.frames[pair.src]
+            disp = model_flow(f0.camera, pair_time(self.scene, pair, s), float(f0.time))
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
                                           disp, model_weight)
         if not weight.any():
