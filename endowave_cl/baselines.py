@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import functools
 
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -99,6 +99,37 @@ def sample_displaced(image: np.ndarray, disp: np.ndarray, sampler: str = "linear
     if sampler != "linear" and image.size:
         np.clip(out, image.min(), image.max(), out=out)
     return out
+
+
+def splat_forward(image: np.ndarray, disp: np.ndarray, weight: Optional[np.ndarray] = None):
+    """(num [H, W, C], den [H, W]) float32: every pixel p of image [H, W, C] pushed to p + disp(p)
+    (disp [H, W, 2], pixels (x, y)) and shared among the four pixels around it with bilinear
+    weights, times weight(p) ([H, W] or None: 1); num sums weight x colour, den the weights, so
+    num / den is the splatted image where den > 0 (forward warping: the pixels of the target that
+    no source pixel reaches have den 0, where a backward warp would invent them)."""
+    h, w = disp.shape[:2]
+    img = np.asarray(image, np.float32).reshape(h * w, -1)                              # [HW, C]
+    u, v = _pixel_grid(h, w)
+    x, y = (u + disp[..., 0]).ravel(), (v + disp[..., 1]).ravel()                       # [HW]
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    # a source pixel reaches the image when its corner (x0, y0) lies in [-1, w - 1] x [-1, h - 1]:
+    # the others (and non-finite motion) get weight 0; the four corners land on a canvas one pixel
+    # wider on every side, so that no corner needs its own bounds test
+    reach = (x0 >= -1) & (x0 <= w - 1) & (y0 >= -1) & (y0 <= h - 1)
+    base = reach.astype(np.float32) if weight is None else np.where(reach, np.asarray(weight, np.float32).ravel(), 0)
+    cw = w + 2
+    i00 = (np.where(reach, y0, -1).astype(np.int64) + 1) * cw + np.where(reach, x0, -1).astype(np.int64) + 1
+    idx = np.concatenate([i00, i00 + 1, i00 + cw, i00 + cw + 1])                        # [4 HW]
+    gx, gy = 1 - fx, 1 - fy
+    wts = np.concatenate([gx * gy, fx * gy, gx * fy, fx * fy]).astype(np.float64) * np.tile(base, 4)  # [4 HW]
+    wts[~np.isfinite(wts)] = 0.0
+    size = (h + 2) * cw
+    den = np.bincount(idx, wts, size)
+    num = np.stack([np.bincount(idx, wts * np.tile(img[:, c], 4), size) for c in range(img.shape[1])], -1)
+    crop = (slice(1, h + 1), slice(1, w + 1))
+    return (num.reshape(h + 2, cw, -1)[crop].astype(np.float32),
+            den.reshape(h + 2, cw)[crop].astype(np.float32))
 
 
 def two_flow_displacements(f01: np.ndarray, f10: np.ndarray, t: float):

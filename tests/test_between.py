@@ -225,6 +225,25 @@ def test_fused_interpolation_against_reference():
     assert weight[5, 7] == 0.0 and weight.sum() == H * W - 1
 
 
+def test_fused_interpolation_mean_against_reference():
+    """mode "mean": every valid hypothesis has the same weight (the reference with an infinite
+    tau); where none is valid, all of them, with weight 0."""
+    from endowave_cl.train.between import fused_interpolation
+    rng = np.random.default_rng(6)
+    H, W, s = 10, 13, 0.7
+    warps = [tuple(rng.uniform(0, 1, (H, W, 3)).astype(np.float32) for _ in range(2)) for _ in range(3)]
+    valid = [np.ones((H, W), np.float32) for _ in range(3)]
+    valid[1][:, :5] = 0.0
+    for v in valid:
+        v[2, 3] = 0.0
+    image, weight = fused_interpolation(warps, s, valid, "mean")
+    ref_image, ref_weight = _fused_ref(warps, s, valid, 1, np.inf)
+    np.testing.assert_allclose(image, ref_image, atol=1e-5)
+    np.testing.assert_array_equal(weight, ref_weight)
+    plain = sum((1 - s) * w0 + s * w1 for w0, w1 in warps) / 3
+    np.testing.assert_allclose(image[:, 5:][weight[:, 5:] > 0], plain[:, 5:][weight[:, 5:] > 0], atol=1e-5)
+
+
 def test_fused_interpolation_prefers_the_hypothesis_whose_warps_agree():
     # two hypotheses of a frame half-way between two frames of a translating texture: the right
     # flow and a flow that is 3 px off.  Fused, the result is the right one's almost everywhere;
@@ -283,10 +302,11 @@ def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tm
     from endowave_cl.train.trainer import Trainer
     scene = load_scene(tiny_scene)
     train_times = {scene.frames[k].time for k in scene.train_indices}
-    for weight, start, want in ((0.5, 3, 3), (0.0, 0, 0)):
+    for weight, start, want, splat in ((0.5, 3, 3, False), (0.5, 3, 3, True), (0.0, 0, 0, True)):
         tr = Trainer(scene, tiny_config(iterations=6, init_points=2000, between_prob=1.0, densify_from=1000,
-                                        densify_until=start, between_model=weight, log_every=1),
-                     tmp_path / f"run{weight}", rt, log=lambda s: None)
+                                        densify_until=start, between_model=weight, log_every=1,
+                                        between_model_splat=splat),
+                     tmp_path / f"run{weight}{splat}", rt, log=lambda s: None)
         calls, forwards = [], []
         real_motion, real_step = tr.rendered_motion, tr._step
 
@@ -297,12 +317,18 @@ def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tm
         tr.rendered_motion = spy
         tr._step = lambda cam, t, t_next, dev, what, out=None: (forwards.append(out), real_step(cam, t, t_next, dev, what, out))[1]
         tr.train(progress=False)
-        assert len(calls) == want
-        for step, t, t_to, shape in calls:
+        per_step = 3 if splat else 1     # with the splat, two more renders at the pair's frames
+        assert len(calls) == want * per_step
+        for i in range(0, len(calls), per_step):
+            step, t, t_to, shape = calls[i]
             assert step >= start and t_to in train_times and t > t_to
             assert shape == (scene.height, scene.width, 2)
-        # the render that gave the motion is the step's own forward: no second render
+            if splat:   # the pair's first frame to t, then its second frame to t
+                (_, ta, ta_to, _), (_, tb, tb_to, _) = calls[i + 1], calls[i + 2]
+                assert ta == t_to and ta_to == t and tb in train_times and tb > t and tb_to == t
+        # the render that gave the motion at t is the step's own forward: no second render of it
         assert sum(f is not None for f in forwards) == want
+        assert all(f is None or f.t not in train_times for f in forwards)
 
 
 def test_between_target_with_the_models_motion_supervises_tissue_only():
@@ -319,3 +345,72 @@ def test_between_target_with_the_models_motion_supervises_tissue_only():
     assert weight[:, :16].max() == 0.0                   # frame 0's tool seen through p - 6
     assert weight[:, 17:].min() == 1.0
     assert (weight <= flow_weight).all()
+
+
+def _splat_ref(image, disp, weight=None):
+    """splat_forward pixel by pixel."""
+    H, W = disp.shape[:2]
+    num = np.zeros((H, W, image.shape[-1]))
+    den = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            px, py = x + float(disp[y, x, 0]), y + float(disp[y, x, 1])
+            if not (np.isfinite(px) and np.isfinite(py)):
+                continue
+            x0, y0 = int(np.floor(px)), int(np.floor(py))
+            fx, fy = px - x0, py - y0
+            b = 1.0 if weight is None else float(weight[y, x])
+            for xi, yi, wc in ((x0, y0, (1 - fx) * (1 - fy)), (x0 + 1, y0, fx * (1 - fy)),
+                               (x0, y0 + 1, (1 - fx) * fy), (x0 + 1, y0 + 1, fx * fy)):
+                if 0 <= xi < W and 0 <= yi < H:
+                    den[yi, xi] += wc * b
+                    num[yi, xi] += wc * b * image[y, x]
+    return num, den
+
+
+def test_splat_forward_against_reference():
+    from endowave_cl.baselines import splat_forward
+    rng = np.random.default_rng(8)
+    H, W = 9, 11
+    image = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    disp = rng.uniform(-3, 3, (H, W, 2)).astype(np.float32)      # some pixels leave the image
+    disp[2, 3] = np.nan                                          # a non-finite motion splats nothing
+    weight = (rng.uniform(0, 1, (H, W)) > 0.3).astype(np.float32)
+    for wt in (None, weight):
+        num, den = splat_forward(image, disp, wt)
+        ref_num, ref_den = _splat_ref(image, disp, wt)
+        np.testing.assert_allclose(num, ref_num, atol=1e-5)
+        np.testing.assert_allclose(den, ref_den, atol=1e-5)
+    # an integer translation moves the image exactly, and leaves the uncovered border empty
+    num, den = splat_forward(image, np.broadcast_to(np.float32([2.0, 1.0]), (H, W, 2)).copy())
+    np.testing.assert_allclose(num[1:, 2:], image[:-1, :-2], atol=1e-6)
+    np.testing.assert_array_equal(den[1:, 2:], 1.0)
+    assert den[0].max() == 0 and den[:, :2].max() == 0
+
+
+def test_between_target_splats_the_frames_along_the_models_motion():
+    """model_fwd: the frames pushed forward along the model's motion from their own times.  The
+    exact motion gives the translated frame inside; pixels no frame reaches keep the backward
+    prediction (model_disp's); a still model gives the two frames' mean."""
+    from endowave_cl.baselines import mean_interpolation
+    from endowave_cl.train.between import between_target
+    scene, pair, _ = _scene_and_pair()
+    H, W = scene.height, scene.width
+    inner = (slice(6, -6), slice(6, -6))
+    flow_only, w0, t0 = between_target(scene, pair, 0.25)
+    back = np.broadcast_to(np.float32([-1.0, 0.5]), (H, W, 2)).copy()   # frame at s -> frame 0
+    g0 = -back                                                          # frame 0 -> s
+    g1 = np.broadcast_to(np.float32([-3.0, 1.5]), (H, W, 2)).copy()     # frame 2 -> s
+    image, w, t = between_target(scene, pair, 0.25, model_disp=back, model_weight=1.0, model_fwd=(g0, g1))
+    assert t == t0
+    np.testing.assert_array_equal(w, w0)
+    np.testing.assert_allclose(image[inner], flow_only[inner], atol=2e-3)
+    still = np.zeros((H, W, 2), np.float32)
+    image, _, _ = between_target(scene, pair, 0.25, model_disp=still, model_weight=1.0, model_fwd=(still, still))
+    np.testing.assert_allclose(image, mean_interpolation(scene.frames[0].image, scene.frames[2].image, 0.25),
+                               atol=1e-6)
+    # motion that carries everything out of the image: nothing is splatted, the backward one stays
+    away = np.full((H, W, 2), 1e3, np.float32)
+    backward, _, _ = between_target(scene, pair, 0.25, model_disp=back, model_weight=0.5)
+    image, _, _ = between_target(scene, pair, 0.25, model_disp=back, model_weight=0.5, model_fwd=(away, away))
+    np.testing.assert_array_equal(image, backward)

@@ -23,7 +23,8 @@ from endowave_cl.gaussians import Gaussians
 from endowave_cl.train.config import TrainConfig, load_config
 from endowave_cl.train.densify import densify_and_prune, logit
 
-QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0)   # cheap trainers: no flow
+QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0,
+             between_flows="")   # cheap trainers: no flow; checks of one in-between key use one estimator
 
 
 @pytest.fixture(scope="module")
@@ -503,7 +504,6 @@ def _between_anneal_final(scene, rt, tmp_path):
 def _adam_skip_culled(scene, rt, tmp_path):
     """adam_skip_culled: a Gaussian culled at the step's time (here: behind the camera) keeps its
     parameters and moments; without it, Adam moves it on the momentum of earlier steps."""
-    from endowave_cl.gaussians import PARAM_NAMES
     k0, k1 = scene.train_indices[:2]
     out = {}
     for skip in (False, True):
@@ -665,13 +665,38 @@ def _between_flows(scene, rt, tmp_path):
         validate_config(TrainConfig(between_flows="dis,raft"), "cfg.toml")
 
 
+def _between_fuse(scene, rt, tmp_path):
+    """between_fuse: how the drawn in-between target combines between_flows' hypotheses ("mean":
+    their plain average); other names are refused by key."""
+    from endowave_cl.data.flow import flow_for_scene
+    from endowave_cl.train.between import between_target
+    from endowave_cl.train.config import validate_config
+    tr = _trainer(scene, rt, tmp_path / "mean", iterations=0, between_prob=1.0,
+                  between_flows="farneback", between_fuse="mean")
+    _, _, dev = tr._between.draw(np.random.default_rng(3))
+    rng = np.random.default_rng(3)
+    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+    s = float(rng.uniform(0.0, 1.0))
+    other = dict(flow_for_scene(scene, method="farneback", progress=False))[pair.src]
+    one, ok1, _ = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)
+    two, ok2, _ = between_target(scene, other, s, sampler=tr.cfg.between_sampler)
+    agree = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, extra=[other])[0]
+    both = (ok1 > 0) & (ok2 > 0)           # where the tool hides one hypothesis, the other alone
+    assert both.mean() > 0.5
+    got = dev.image.get()
+    np.testing.assert_allclose(got[both], 0.5 * (one + two)[both], atol=1e-6)
+    assert not np.allclose(got[both], agree[both], atol=1e-4)
+    with pytest.raises(EndowaveError, match="between_fuse"):
+        validate_config(TrainConfig(between_fuse="median"), "cfg.toml")
+
+
 def _between_model(scene, rt, tmp_path):
     """between_model: after densify_until the drawn in-between target blends in the pair's frames
     warped along the model's own rendered motion, with this weight; it is a weight in [0, 1]."""
     from endowave_cl.train.between import between_target
     from endowave_cl.train.config import validate_config
     tr = _trainer(scene, rt, tmp_path / "model", iterations=0, between_prob=1.0, densify_until=0,
-                  between_model=0.5)
+                  between_model=0.5, between_model_splat=False)     # the splat: _between_model_splat
     from endowave_cl.render import render
 
     def motion(camera, t, t_to):
@@ -688,6 +713,33 @@ def _between_model(scene, rt, tmp_path):
     assert not np.allclose(dev.image.get(), alone, atol=1e-4)
     with pytest.raises(EndowaveError, match="between_model"):
         validate_config(TrainConfig(between_model=1.5), "cfg.toml")
+
+
+def _between_model_splat(scene, rt, tmp_path):
+    """between_model_splat: the model's part of the drawn in-between target splats the pair's frames
+    forward along the motion the model renders at their own times; off, it warps them backward."""
+    from endowave_cl.render import render
+    from endowave_cl.train.between import between_target
+    for splat in (True, False):
+        tr = _trainer(scene, rt, tmp_path / f"splat{splat}", iterations=0, between_prob=1.0, densify_until=0,
+                      between_model=1.0, between_model_splat=splat)
+
+        def motion(camera, t, t_to):
+            return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
+        _, _, dev = tr._between.draw(np.random.default_rng(3), motion, 1.0)
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+        t = (1 - s) * f0.time + s * f1.time
+        disp = motion(f0.camera, t, f0.time)
+        fwd = (motion(f0.camera, f0.time, t), motion(f1.camera, f1.time, t))
+        kw = dict(sampler=tr.cfg.between_sampler, model_disp=disp, model_weight=1.0)
+        splatted = between_target(scene, pair, s, model_fwd=fwd, **kw)[0]
+        backward = between_target(scene, pair, s, **kw)[0]
+        want, other = (splatted, backward) if splat else (backward, splatted)
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        assert not np.allclose(dev.image.get(), other, atol=1e-4)
 
 
 CHECKS = {
@@ -746,6 +798,8 @@ CHECKS = {
     "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,
     "between_model": _between_model,
+    "between_fuse": _between_fuse,
+    "between_model_splat": _between_model_splat,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

@@ -9,7 +9,8 @@ the median of as many Trainer.train_step calls (the step as training runs it: no
 the parts, its own read-backs and the NaN guard), and of as many Trainer.train_step_between calls
 (an in-between step, with the host's part of it: drawing and warping its target), and of as many
 in-between steps as they run after densify_until (with between_model: the forward read back and
-the model's motion warped into the target).
+the model's motion warped into the target; with between_model_splat two more renders at the pair's
+frames and the frames splatted forward along them).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
                                      [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels [--top N]]
@@ -195,8 +196,9 @@ def main(argv=None):
                   f"(of which the in-between target on the host {statistics.median(draws):.3f})")
             if tr.cfg.between_model > 0:
                 # after densify_until the step's forward is read back first and the target blends
-                # in the frames warped along the model's motion (between_model): a third read-back
-                # and two more warps on the host
+                # in the frames moved along the model's motion (between_model): a third read-back
+                # and two more warps on the host; with between_model_splat also two renders at the
+                # pair's frames, their read-backs and two forward splats
                 step0, late = tr.step, []
                 for i in range(args.warmup + args.runs):
                     tr.step = max(step0, tr.cfg.densify_until)
@@ -208,7 +210,8 @@ def main(argv=None):
                         late.append(time.perf_counter() - t0)
                 tr.step = step0
                 print(f"seconds per Trainer.train_step_between after densify_until (between_model "
-                      f"{tr.cfg.between_model:g}): {statistics.median(late):.3f}")
+                      f"{tr.cfg.between_model:g}, between_model_splat {tr.cfg.between_model_splat}): "
+                      f"{statistics.median(late):.3f}")
 
 
 if __name__ == "__main__":

@@ -146,7 +146,7 @@ def run(args) -> int:
     losses = ["rgb"] + [n for n, on in (("depth", cfg.use_depth), ("flow", cfg.use_flow),
                                          ("wavelet", cfg.use_wavelet)) if on]
     auto_sh = cfg.sh_degree < 0          # resolved by the trainer from the cameras (train/config.py)
-    trainer = Trainer(scene, cfg, out, rt, resume=not args.restart)
+    trainer = Trainer(scene, cfg, out, rt, resume=not args.restart, progress=not args.quiet)
     if cfg.minutes > 0:
         plan = f"a {cfg.minutes:g}-minute budget"
     elif trainer.auto_iterations:

@@ -24,6 +24,9 @@ where it is wrong, they disagree.  ``fused_interpolation`` weighs the hypotheses
 disagreement, E_h = box mean over (2 FUSE_RADIUS + 1)^2 pixels of sum_c |W0_h - W1_h|, with
 weights exp(-(E_h - min_h E_h) / FUSE_TAU) normalised over h, and blends their interpolations
 (1 - s) W0_h + s W1_h.  No frame at s is needed: the choice uses only the two training frames.
+With ``between_fuse = "mean"`` the hypotheses are averaged instead (equal weights where they are
+valid): their errors partly cancel, which scores higher PSNR on real video at the price of a
+softer frame (docs/QUALITY.md finding 20).
 
 The model's own motion (``between_model``, after densify_until): by then the Gaussians' motion is
 fitted to every training frame, not to one pair's flow.  The step's forward also renders the flow
@@ -33,6 +36,15 @@ along (d0, d1) are a second prediction of the frame at s whose errors differ fro
 interpolation's, and the target is their blend, (1 - w) flow target + w ((1 - s) I_k(p + d0) +
 s I_k'(p + d1)).  On the pulling frames the blend of the two predictions is nearer the held-out
 frames than either alone (docs/QUALITY.md finding 19).
+
+With ``between_model_splat`` the model's prediction pushes the frames forward instead: two more
+renders give the motion the model shows at each frame's own time, g0 from t_k to s and g1 from
+t_k' to s, and every pixel of I_k (I_k') is splatted to p + g0(p) (p + g1(p)) with bilinear
+weights (baselines.splat_forward); the two splats are blended with weights (1 - s) and s and
+normalised, and the pixels that neither frame reaches keep the backward prediction above.  At its
+training frames the model is fitted closely, so its motion there is better than the motion it
+renders between them, and a forward splat leaves a pixel that one frame cannot see to the other
+(docs/QUALITY.md finding 20).
 """
 from __future__ import annotations
 
@@ -41,7 +53,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from ..baselines import sample_displaced, two_flow_displacements
+from ..baselines import sample_displaced, splat_forward, two_flow_displacements
 
 
 # fused_interpolation: half-width (px) of the box over which a hypothesis's two warps are compared,
@@ -49,18 +61,28 @@ from ..baselines import sample_displaced, two_flow_displacements
 # a hypothesis's weight falls by a factor e against the best one's
 FUSE_RADIUS = 3
 FUSE_TAU = 0.02
+# how the hypotheses are combined (between_fuse): weighted by their warps' agreement, or averaged
+FUSE_MODES = ("agree", "mean")
+# splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
+# that is reached by one source pixel exactly) keeps the backward prediction
+SPLAT_MIN_WEIGHT = 0.05
 
 
 def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
-                        valid: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
+                        valid: Optional[Sequence[np.ndarray]] = None,
+                        mode: str = "agree") -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]) fused from K hypotheses of the frame at fraction s (module
     docstring).  warps: [(W0, W1)] per hypothesis, frame 0 and frame 1 warped to s ([H, W, 3]
     each); valid: [H, W] per hypothesis, 0 where it must not be used (tool masks); weight is 1
-    where at least one hypothesis is valid."""
-    size = (2 * FUSE_RADIUS + 1,) * 2
-    channel_sum = np.ones((1, 3), np.float32)          # cv2.transform: [H, W, 3] -> [H, W] sum
-    err = np.stack([cv2.blur(cv2.transform(cv2.absdiff(w0, w1), channel_sum), size)
-                    for w0, w1 in warps])                                               # [K, H, W]
+    where at least one hypothesis is valid.  mode (FUSE_MODES): "agree" weighs the hypotheses by
+    how well their two warps agree, "mean" gives the valid ones equal weights."""
+    if mode == "mean":
+        err = np.zeros((len(warps),) + warps[0][0].shape[:2], np.float32)              # [K, H, W]
+    else:
+        size = (2 * FUSE_RADIUS + 1,) * 2
+        channel_sum = np.ones((1, 3), np.float32)      # cv2.transform: [H, W, 3] -> [H, W] sum
+        err = np.stack([cv2.blur(cv2.transform(cv2.absdiff(w0, w1), channel_sum), size)
+                        for w0, w1 in warps])                                           # [K, H, W]
     any_ok = np.ones(err.shape[1:], bool)
     if valid is not None:
         ok = np.stack([np.asarray(v) > 0 for v in valid])
@@ -93,16 +115,21 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
 
 def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
                    extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
-                   model_weight: float = 0.0) -> Tuple[np.ndarray, np.ndarray, float]:
+                   model_weight: float = 0.0, fuse: str = "agree",
+                   model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
     instead of each frame's own.  sampler: how the frames are sampled between pixels
     (baselines.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
-    two frames from other estimators, fused with the pair's own (fused_interpolation).  model_disp
+    two frames from other estimators, fused with the pair's own (fused_interpolation, as fuse
+    says: FUSE_MODES).  model_disp
     [H, W, 2]: where each pixel of the model's render at s lies in the pair's first frame (its
     rendered flow to that time); the two frames warped along it (the second along the same motion
-    scaled to its time) are blended into the target with model_weight."""
+    scaled to its time) are blended into the target with model_weight.  model_fwd (g0, g1)
+    [H, W, 2] each: where the model moves each pixel of the first and of the second frame by the
+    time at s; with it the model's prediction splats the frames forward along them
+    (splat_interpolation), the backward warps along model_disp filling what neither reaches."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     warps, valid = [], []
     for p in (pair, *extra):
@@ -116,7 +143,7 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     if len(warps) == 1:
         image, weight = ((1.0 - s) * warps[0][0] + s * warps[0][1]).astype(np.float32), valid[0]
     else:
-        image, weight = fused_interpolation(warps, s, valid)
+        image, weight = fused_interpolation(warps, s, valid, fuse)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
@@ -124,9 +151,28 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         d0 = np.asarray(model_disp, np.float32)
         d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
         w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
-        image = ((1.0 - model_weight) * image + model_weight * ((1.0 - s) * w0 + s * w1)).astype(np.float32)
+        model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
+        if model_fwd is not None:
+            model = splat_interpolation(f0, f1, model_fwd[0], model_fwd[1], s, model)
+        image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
         weight = weight * ok
     return image, weight, pair_time(scene, pair, s)
+
+
+def splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: np.ndarray) -> np.ndarray:
+    """[H, W, 3]: the frame at fraction s from frames f0 and f1 splatted forward along g0 and g1
+    ([H, W, 2]: each pixel's displacement from its frame to s; baselines.splat_forward), blended
+    as ((1 - s) num0 + s num1) / ((1 - s) den0 + s den1); fill where that weight is below
+    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not splatted."""
+    num, den = None, None
+    for f, g, a in ((f0, g0, 1.0 - s), (f1, g1, s)):
+        src = None if f.mask is None else (np.asarray(f.mask) > 0.5).astype(np.float32)
+        n, d = splat_forward(f.image, np.asarray(g, np.float32), src)
+        num = a * n if num is None else num + a * n
+        den = a * d if den is None else den + a * d
+    out = np.array(fill, np.float32, copy=True)
+    np.divide(num, den[..., None], out=out, where=(den > SPLAT_MIN_WEIGHT)[..., None])
+    return out
 
 
 def _warp_pair(f0, f1, d0, d1, sampler: str):
@@ -150,11 +196,14 @@ class BetweenSampler:
     time it spans, so that every moment of the sequence gets the same share of in-between steps
     (where a held-out frame splits the training frames, the pair around it spans twice the time of
     its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
-    into every target (between_target's extra)."""
+    into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
+    prediction splats the frames forward (between_target's model_fwd)."""
 
     def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
-                 extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False):
-        self.rt, self.scene, self.two_flow, self.sampler = rt, scene, two_flow, sampler
+                 extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
+                 model_splat: bool = False):
+        self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
+        self.model_splat = model_splat
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
         self.pair_prob = None                                                   # [P] or uniform
@@ -174,19 +223,23 @@ class BetweenSampler:
     def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0):
         """(camera, time, device targets) of one in-between step, or None where nothing is
         supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
-        from t to t_to, blended into the target with model_weight (between_target)."""
+        from t to t_to, blended into the target with model_weight (between_target); it is called
+        first at the step's own time, then (model_splat) at the pair's two frames' times."""
         from .device_losses import prepare_targets
         if self.pair_prob is None:
             pair = self.pairs[int(rng.integers(len(self.pairs)))]
         else:
             pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
         s = float(rng.uniform(0.0, 1.0))
-        disp = None
+        disp = fwd = None
         if model_flow is not None and model_weight > 0.0:
-            f0 = self.scene.frames[pair.src]
-            disp = model_flow(f0.camera, pair_time(self.scene, pair, s), float(f0.time))
+            f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
+            t = pair_time(self.scene, pair, s)
+            disp = model_flow(f0.camera, t, float(f0.time))
+            if self.model_splat:
+                fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                                          disp, model_weight)
+                                          disp, model_weight, self.fuse, fwd)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight, temporary=True)

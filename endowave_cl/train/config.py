@@ -88,16 +88,25 @@ class TrainConfig:
                                     # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
                                     # and teaches a blurred frame; docs/QUALITY.md finding 10)
-    between_flows: str = ""         # further flow estimators (comma-separated, data/flow.py METHODS)
-                                    # whose interpolations are fused with flow_method's in the
-                                    # in-between target, per pixel by how well each one's two warps
-                                    # agree (train/between.py fused_interpolation); "": flow_method's
-                                    # alone
+    between_flows: str = "dis_fine,farneback"  # further flow estimators (comma-separated,
+                                    # data/flow.py METHODS) whose interpolations are fused with
+                                    # flow_method's in the in-between target, per pixel by how well
+                                    # each one's two warps agree (train/between.py
+                                    # fused_interpolation; docs/QUALITY.md finding 20); "":
+                                    # flow_method's alone
+    between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
+                                    # pixel's by how well its two warps agree, "mean" averages them
+                                    # (docs/QUALITY.md finding 20)
     between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
                                     # 0: the flow's alone; 1: the model's alone; docs/QUALITY.md
                                     # finding 19)
+    between_model_splat: bool = True  # the model's prediction in the in-between target pushes the
+                                    # two frames forward along the motion the model renders at
+                                    # their own times (two more renders per such step) instead of
+                                    # sampling them along the motion it renders at s (train/
+                                    # between.py splat_interpolation; docs/QUALITY.md finding 20)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
@@ -352,6 +361,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
+    from .between import FUSE_MODES
+    if cfg.between_fuse not in FUSE_MODES:
+        raise EndowaveError(f"{source}: key 'between_fuse' must be one of {', '.join(FUSE_MODES)}, "
+                            f"got {cfg.between_fuse!r}")
     from ..data.flow import METHODS
     for m in between_flow_methods(cfg):
         if m not in METHODS:

@@ -58,9 +58,11 @@ def late_factor(cfg, step: int, final: float) -> float:
 
 
 class Trainer:
-    def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True):
+    def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True,
+                 progress: bool = False):
         from .run_folder import RunSession
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
+        self._flow_progress = progress    # a progress bar while flows not in the cache are computed
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
         self._auto_cap = cfg.max_gaussians <= 0           # raised for short lives once the model exists
         self.auto_iterations = cfg.iterations <= 0        # visits per training frame (config.py)
@@ -117,7 +119,7 @@ class Trainer:
         from .between import BetweenSampler
         self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
                                        cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
-                                       cfg.between_by_time)
+                                       cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
@@ -162,7 +164,7 @@ class Trainer:
         if not (c.use_flow or c.init_velocity or c.between_prob > 0):
             return {}
         from ..data.flow import flow_for_scene
-        return dict(flow_for_scene(self.scene, method=c.flow_method, progress=False))
+        return dict(flow_for_scene(self.scene, method=c.flow_method, progress=self._flow_progress))
 
     def _load_between_flows(self) -> List[Dict[int, object]]:
         """The between_flows estimators' flows of the training pairs (cached on disk), for the
@@ -173,7 +175,7 @@ class Trainer:
             return []
         out = []
         for m in between_flow_methods(self.cfg):
-            f = flow_for_scene(self.scene, method=m, progress=False)
+            f = flow_for_scene(self.scene, method=m, progress=self._flow_progress)
             if f.method == "user":
                 return []
             out.append(dict(f))
@@ -214,11 +216,14 @@ class Trainer:
         pair's flow predicts there (train/between.py); None when the drawn target has no supervised
         pixel (tool masks cover it: nothing was done).  With between_model after densify_until the
         step's forward renders the flow to the pair's first frame, and the target blends in the
-        frames warped along it: one render, read back before the target is made."""
+        frames warped along it: one render, read back before the target is made; with
+        between_model_splat two more renders at the pair's frames give the motion along which
+        the frames are splatted forward."""
         forward = {}
 
         def model_motion(camera, t: float, t_to: float) -> np.ndarray:
-            forward["out"] = out = render(self.rt, self.params, camera, t, t_to)
+            out = render(self.rt, self.params, camera, t, t_to)
+            forward.setdefault("out", out)     # the first render is at the step's own time
             return self.rendered_motion(out)
 
         use_model = self.cfg.between_model > 0 and self.step >= self.cfg.densify_until
