@@ -690,6 +690,19 @@ def _between_fuse(scene, rt, tmp_path):
         validate_config(TrainConfig(between_fuse="median"), "cfg.toml")
 
 
+def _drawn_with_model_motion(tr, rt, weight):
+    """An in-between target drawn (seeded) with the model's rendered motion at this weight, and
+    what it drew: (target image, pair, s, motion(camera, t, t_to))."""
+    from endowave_cl.render import render
+
+    def motion(camera, t, t_to):
+        return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
+    _, _, dev = tr._between.draw(np.random.default_rng(3), motion, weight)
+    rng = np.random.default_rng(3)
+    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+    return dev.image.get(), pair, float(rng.uniform(0.0, 1.0)), motion
+
+
 def _between_model(scene, rt, tmp_path):
     """between_model: after densify_until the drawn in-between target blends in the pair's frames
     warped along the model's own rendered motion, with this weight; it is a weight in [0, 1]."""
@@ -697,20 +710,13 @@ def _between_model(scene, rt, tmp_path):
     from endowave_cl.train.config import validate_config
     tr = _trainer(scene, rt, tmp_path / "model", iterations=0, between_prob=1.0, densify_until=0,
                   between_model=0.5, between_model_splat=False)     # the splat: _between_model_splat
-    from endowave_cl.render import render
-
-    def motion(camera, t, t_to):
-        return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
-    _, _, dev = tr._between.draw(np.random.default_rng(3), motion, 0.5)
-    rng = np.random.default_rng(3)
-    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-    s = float(rng.uniform(0.0, 1.0))
+    got, pair, s, motion = _drawn_with_model_motion(tr, rt, 0.5)
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     disp = motion(f0.camera, (1 - s) * f0.time + s * f1.time, f0.time)
     want = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, model_disp=disp, model_weight=0.5)[0]
     alone = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)[0]
-    np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
-    assert not np.allclose(dev.image.get(), alone, atol=1e-4)
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert not np.allclose(got, alone, atol=1e-4)
     with pytest.raises(EndowaveError, match="between_model"):
         validate_config(TrainConfig(between_model=1.5), "cfg.toml")
 
@@ -718,28 +724,20 @@ def _between_model(scene, rt, tmp_path):
 def _between_model_splat(scene, rt, tmp_path):
     """between_model_splat: the model's part of the drawn in-between target splats the pair's frames
     forward along the motion the model renders at their own times; off, it warps them backward."""
-    from endowave_cl.render import render
     from endowave_cl.train.between import between_target
     for splat in (True, False):
         tr = _trainer(scene, rt, tmp_path / f"splat{splat}", iterations=0, between_prob=1.0, densify_until=0,
                       between_model=1.0, between_model_splat=splat)
-
-        def motion(camera, t, t_to):
-            return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
-        _, _, dev = tr._between.draw(np.random.default_rng(3), motion, 1.0)
-        rng = np.random.default_rng(3)
-        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-        s = float(rng.uniform(0.0, 1.0))
+        got, pair, s, motion = _drawn_with_model_motion(tr, rt, 1.0)
         f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
         t = (1 - s) * f0.time + s * f1.time
-        disp = motion(f0.camera, t, f0.time)
-        fwd = (motion(f0.camera, f0.time, t), motion(f1.camera, f1.time, t))
-        kw = dict(sampler=tr.cfg.between_sampler, model_disp=disp, model_weight=1.0)
-        splatted = between_target(scene, pair, s, model_fwd=fwd, **kw)[0]
+        kw = dict(sampler=tr.cfg.between_sampler, model_disp=motion(f0.camera, t, f0.time), model_weight=1.0)
+        splatted = between_target(scene, pair, s, model_fwd=(motion(f0.camera, f0.time, t),
+                                                             motion(f1.camera, f1.time, t)), **kw)[0]
         backward = between_target(scene, pair, s, **kw)[0]
         want, other = (splatted, backward) if splat else (backward, splatted)
-        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
-        assert not np.allclose(dev.image.get(), other, atol=1e-4)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert not np.allclose(got, other, atol=1e-4)
 
 
 CHECKS = {
