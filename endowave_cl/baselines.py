@@ -114,19 +114,27 @@ def splat_forward(image: np.ndarray, disp: np.ndarray, weight: Optional[np.ndarr
     x0, y0 = np.floor(x), np.floor(y)
     fx, fy = x - x0, y - y0
     # a source pixel reaches the image when its corner (x0, y0) lies in [-1, w - 1] x [-1, h - 1]:
-    # the others (and non-finite motion) get weight 0; the four corners land on a canvas one pixel
-    # wider on every side, so that no corner needs its own bounds test
+    # the others (and non-finite motion) go to one spare bin past the canvas; the four corners land
+    # on a canvas one pixel wider on every side, so that no corner needs its own bounds test
     reach = (x0 >= -1) & (x0 <= w - 1) & (y0 >= -1) & (y0 <= h - 1)
     base = reach.astype(np.float32) if weight is None else np.where(reach, np.asarray(weight, np.float32).ravel(), 0)
     cw = w + 2
-    i00 = (np.where(reach, y0, -1).astype(np.int64) + 1) * cw + np.where(reach, x0, -1).astype(np.int64) + 1
-    idx = np.concatenate([i00, i00 + 1, i00 + cw, i00 + cw + 1])                        # [4 HW]
-    gx, gy = 1 - fx, 1 - fy
-    wts = np.concatenate([gx * gy, fx * gy, gx * fy, fx * fy]).astype(np.float64) * np.tile(base, 4)  # [4 HW]
-    wts[~np.isfinite(wts)] = 0.0
     size = (h + 2) * cw
-    den = np.bincount(idx, wts, size)
-    num = np.stack([np.bincount(idx, wts * np.tile(img[:, c], 4), size) for c in range(img.shape[1])], -1)
+    i00 = np.where(reach, (np.where(reach, y0, 0).astype(np.int64) + 1) * cw
+                   + np.where(reach, x0, 0).astype(np.int64) + 1, size)
+    idx = np.empty((4, h * w), np.int64)                                                # [4, HW]
+    idx[0] = i00
+    for k, off in ((1, 1), (2, cw), (3, cw + 1)):
+        np.add(i00, off, out=idx[k])
+        idx[k][~reach] = size
+    gx, gy = 1 - fx, 1 - fy
+    wts = np.empty((4, h * w), np.float64)                                              # [4, HW]
+    wts[0], wts[1], wts[2], wts[3] = gx * gy, fx * gy, gx * fy, fx * fy
+    wts *= base
+    wts[~np.isfinite(wts)] = 0.0
+    idx = idx.ravel()
+    den = np.bincount(idx, wts.ravel(), size + 1)[:size]
+    num = np.stack([np.bincount(idx, (wts * img[:, c]).ravel(), size + 1)[:size] for c in range(img.shape[1])], -1)
     crop = (slice(1, h + 1), slice(1, w + 1))
     return (num.reshape(h + 2, cw, -1)[crop].astype(np.float32),
             den.reshape(h + 2, cw)[crop].astype(np.float32))

@@ -381,6 +381,12 @@ def test_splat_forward_against_reference():
         ref_num, ref_den = _splat_ref(image, disp, wt)
         np.testing.assert_allclose(num, ref_num, atol=1e-5)
         np.testing.assert_allclose(den, ref_den, atol=1e-5)
+    # a pixel that reaches nothing adds nothing anywhere, whatever its value
+    bad = image.copy()
+    bad[2, 3] = np.nan
+    num, den = splat_forward(bad, disp)
+    assert np.isfinite(num).all()
+    np.testing.assert_allclose(num, _splat_ref(image, disp)[0], atol=1e-5)
     # an integer translation moves the image exactly, and leaves the uncovered border empty
     num, den = splat_forward(image, np.broadcast_to(np.float32([2.0, 1.0]), (H, W, 2)).copy())
     np.testing.assert_allclose(num[1:, 2:], image[:-1, :-2], atol=1e-6)
@@ -414,3 +420,68 @@ def test_between_target_splats_the_frames_along_the_models_motion():
     backward, _, _ = between_target(scene, pair, 0.25, model_disp=back, model_weight=0.5)
     image, _, _ = between_target(scene, pair, 0.25, model_disp=back, model_weight=0.5, model_fwd=(away, away))
     np.testing.assert_array_equal(image, backward)
+
+
+def test_reversed_splat_pushes_the_image_forward():
+    """reversed_splat: a uniform motion reverses to itself, so the pushed image is the image sampled
+    backward along it (bicubic, the same values to rounding); an integer motion moves it exactly and
+    leaves the uncovered border unreached; tool pixels (source weight 0) reach nothing."""
+    from endowave_cl.baselines import sample_displaced
+    from endowave_cl.train.between import reversed_splat
+    rng = np.random.default_rng(9)
+    H, W = 12, 15
+    image = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    half = np.broadcast_to(np.float32([0.5, -0.25]), (H, W, 2)).copy()
+    pushed, reach = reversed_splat(image, half, "cubic")
+    inner = (slice(1, -1), slice(1, -1))
+    np.testing.assert_allclose(reach[inner], 1.0, atol=1e-6)
+    np.testing.assert_allclose(pushed[inner], sample_displaced(image, -half, "cubic")[inner], atol=1e-5)
+    step = np.broadcast_to(np.float32([2.0, 1.0]), (H, W, 2)).copy()
+    pushed, reach = reversed_splat(image, step, "linear")
+    np.testing.assert_allclose(pushed[1:, 2:], image[:-1, :-2], atol=1e-6)
+    assert reach[0].max() == 0 and reach[:, :2].max() == 0
+    tool = np.ones((H, W), np.float32)
+    tool[:, :5] = 0.0
+    _, reach = reversed_splat(image, step, "linear", tool)
+    assert reach[:, :7].max() == 0 and reach[1:, 8:].min() == pytest.approx(1.0)
+
+
+def test_reversed_splat_interpolation_takes_what_one_frame_cannot_reach_from_the_other():
+    """reversed_splat_interpolation: frame 0 pushed 3 px right leaves its first three columns
+    unreached, and there the frame at s is frame 1's pushed image alone; where both reach it is the
+    (1 - s, s) blend; where neither does, the fill."""
+    from endowave_cl.data.scene import Frame
+    from endowave_cl.train.between import reversed_splat_interpolation
+    rng = np.random.default_rng(10)
+    H, W = 10, 14
+    i0, i1 = (rng.uniform(0, 1, (H, W, 3)).astype(np.float32) for _ in range(2))
+    f0, f1 = Frame(0, 0.0, i0, None, None, None), Frame(1, 1.0, i1, None, None, None)
+    g0 = np.broadcast_to(np.float32([3.0, 0.0]), (H, W, 2)).copy()
+    still = np.zeros((H, W, 2), np.float32)
+    fill = np.full((H, W, 3), 7.0, np.float32)
+    s = 0.25
+    image, w0, w1 = reversed_splat_interpolation(f0, f1, g0, still, s, "linear", fill, fill, fill)
+    np.testing.assert_allclose(image[:, :3], i1[:, :3], atol=1e-6)
+    np.testing.assert_allclose(w0[:, :3], 7.0)                        # frame 0 unreached: its fill
+    np.testing.assert_allclose(w0[:, 3:], i0[:, :-3], atol=1e-6)
+    np.testing.assert_allclose(image[:, 3:], (1 - s) * i0[:, :-3] + s * i1[:, 3:], atol=1e-6)
+    away = np.full((H, W, 2), 1e3, np.float32)
+    image, _, _ = reversed_splat_interpolation(f0, f1, away, away, s, "linear", fill, fill, fill)
+    np.testing.assert_array_equal(image, fill)
+
+
+def test_between_target_pushes_the_flows_frames_forward():
+    """flow_splat: each flow hypothesis pushes the frames forward along the flow (exact for a
+    translation: the translated frame inside); with splat = "colour" too; the backward warps fill
+    where no pixel lands (the borders the motion uncovers)."""
+    from endowave_cl.train.between import between_target
+    scene, pair, tex = _scene_and_pair()
+    inner = (slice(6, -6), slice(6, -6))
+    for splat in ("reverse", "colour"):
+        image, weight, t = between_target(scene, pair, 0.5, sampler="cubic", flow_splat=True, splat=splat)
+        assert t == pytest.approx(0.5) and weight.min() == 1.0
+        np.testing.assert_allclose(image[inner], scene.frames[1].image[inner], atol=2e-3)
+    backward = between_target(scene, pair, 0.25, sampler="cubic")[0]
+    pushed = between_target(scene, pair, 0.25, sampler="cubic", flow_splat=True, splat="reverse")[0]
+    np.testing.assert_allclose(pushed[inner], backward[inner], atol=1e-5)   # a uniform motion reverses exactly
+    assert not np.allclose(pushed, backward, atol=1e-4)                # the borders differ

@@ -38,6 +38,13 @@ def _trainer(scene, rt, tmp_path, **kw):
     return Trainer(scene, tiny_config(**{**QUICK, **kw}), tmp_path / "run", rt, log=lambda s: None, resume=False)
 
 
+def _target_kw(tr, **over):
+    """between_target's keywords as the trainer's in-between keys set them, with over's changes."""
+    c = tr.cfg
+    return {**dict(sampler=c.between_sampler, fuse=c.between_fuse, flow_splat=c.between_flow_splat,
+                   splat=c.between_splat), **over}
+
+
 # ------------------------------------------------------------------ the training loop, steps stubbed
 def _loop(scene, rt, tmp_path, **kw):
     """Run Trainer.train with train_step, density control's host work (densify_and_prune), the
@@ -562,12 +569,12 @@ def _between_two_flow(scene, rt, tmp_path):
     from endowave_cl.train.between import between_target
     for two_flow in (False, True):
         tr = _trainer(scene, rt, tmp_path / str(two_flow), iterations=0, between_prob=1.0,
-                      between_two_flow=two_flow)
+                      between_two_flow=two_flow, between_flow_splat=False)   # it makes backward warps
         _, _, dev = tr._between.draw(np.random.default_rng(3))
         rng = np.random.default_rng(3)
         pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
-        want, other = (between_target(scene, pair, s, two_flow=f, sampler=tr.cfg.between_sampler)[0]
+        want, other = (between_target(scene, pair, s, two_flow=f, **_target_kw(tr))[0]
                        for f in (two_flow, not two_flow))
         np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
@@ -623,7 +630,7 @@ def _between_by_time(scene, rt, tmp_path):
         k = int(rng.choice(len(pairs), p=span / span.sum())) if by_time else int(rng.integers(len(pairs)))
         s = float(rng.uniform(0.0, 1.0))
         _, t, dev = tr._between.draw(np.random.default_rng(7))
-        want_img = between_target(scene, pairs[k], s, sampler=tr.cfg.between_sampler)[0]
+        want_img = between_target(scene, pairs[k], s, **_target_kw(tr))[0]
         np.testing.assert_allclose(dev.image.get(), want_img, atol=1e-6)
 
 
@@ -637,7 +644,7 @@ def _between_sampler(scene, rt, tmp_path):
         pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
         s = float(rng.uniform(0.0, 1.0))
         other = "cubic" if sampler == "linear" else "linear"
-        want, not_want = (between_target(scene, pair, s, sampler=x)[0] for x in (sampler, other))
+        want, not_want = (between_target(scene, pair, s, **_target_kw(tr, sampler=x))[0] for x in (sampler, other))
         np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
         assert not np.allclose(dev.image.get(), not_want, atol=1e-4)
 
@@ -657,8 +664,8 @@ def _between_flows(scene, rt, tmp_path):
     pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
     s = float(rng.uniform(0.0, 1.0))
     other = dict(flow_for_scene(scene, method="farneback", progress=False))[pair.src]
-    want = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, extra=[other])[0]
-    alone = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)[0]
+    want = between_target(scene, pair, s, extra=[other], **_target_kw(tr))[0]
+    alone = between_target(scene, pair, s, **_target_kw(tr))[0]
     np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
     assert not np.allclose(dev.image.get(), alone, atol=1e-4)
     with pytest.raises(EndowaveError, match="between_flows"):
@@ -667,27 +674,66 @@ def _between_flows(scene, rt, tmp_path):
 
 def _between_fuse(scene, rt, tmp_path):
     """between_fuse: how the drawn in-between target combines between_flows' hypotheses ("mean":
-    their plain average); other names are refused by key."""
+    their plain average, "agree": weighed by their warps' agreement); other names are refused by
+    key."""
     from endowave_cl.data.flow import flow_for_scene
     from endowave_cl.train.between import between_target
     from endowave_cl.train.config import validate_config
-    tr = _trainer(scene, rt, tmp_path / "mean", iterations=0, between_prob=1.0,
-                  between_flows="farneback", between_fuse="mean")
-    _, _, dev = tr._between.draw(np.random.default_rng(3))
-    rng = np.random.default_rng(3)
-    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-    s = float(rng.uniform(0.0, 1.0))
-    other = dict(flow_for_scene(scene, method="farneback", progress=False))[pair.src]
-    one, ok1, _ = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)
-    two, ok2, _ = between_target(scene, other, s, sampler=tr.cfg.between_sampler)
-    agree = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, extra=[other])[0]
-    both = (ok1 > 0) & (ok2 > 0)           # where the tool hides one hypothesis, the other alone
-    assert both.mean() > 0.5
-    got = dev.image.get()
-    np.testing.assert_allclose(got[both], 0.5 * (one + two)[both], atol=1e-6)
-    assert not np.allclose(got[both], agree[both], atol=1e-4)
+    for fuse, other_fuse in (("mean", "agree"), ("agree", "mean")):
+        tr = _trainer(scene, rt, tmp_path / fuse, iterations=0, between_prob=1.0,
+                      between_flows="farneback", between_fuse=fuse)
+        _, _, dev = tr._between.draw(np.random.default_rng(3))
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        other = dict(flow_for_scene(scene, method="farneback", progress=False))[pair.src]
+        got = dev.image.get()
+        np.testing.assert_allclose(got, between_target(scene, pair, s, extra=[other], **_target_kw(tr))[0], atol=1e-6)
+        not_want = between_target(scene, pair, s, extra=[other], **_target_kw(tr, fuse=other_fuse))[0]
+        assert not np.allclose(got, not_want, atol=1e-4)
+        if fuse == "mean":
+            one, ok1, _ = between_target(scene, pair, s, **_target_kw(tr))
+            two, ok2, _ = between_target(scene, other, s, **_target_kw(tr))
+            both = (ok1 > 0) & (ok2 > 0)       # where the tool hides one hypothesis, the other alone
+            assert both.mean() > 0.5
+            np.testing.assert_allclose(got[both], 0.5 * (one + two)[both], atol=1e-6)
     with pytest.raises(EndowaveError, match="between_fuse"):
         validate_config(TrainConfig(between_fuse="median"), "cfg.toml")
+
+
+def _between_flow_splat(scene, rt, tmp_path):
+    """between_flow_splat: the drawn in-between target pushes the frames forward along each flow
+    hypothesis (as between_splat says); off, it samples them backward."""
+    from endowave_cl.train.between import between_target
+    for on in (True, False):
+        tr = _trainer(scene, rt, tmp_path / f"fs{on}", iterations=0, between_prob=1.0, between_flow_splat=on)
+        _, _, dev = tr._between.draw(np.random.default_rng(3))
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        want, other = (between_target(scene, pair, s, **_target_kw(tr, flow_splat=f))[0] for f in (on, not on))
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        assert not np.allclose(dev.image.get(), other, atol=1e-4)
+
+
+def _between_splat(scene, rt, tmp_path):
+    """between_splat: how the forward splats of the drawn in-between target (the flows' and the
+    model's) make their images, "reverse" or "colour"; other names are refused by key."""
+    from endowave_cl.train.between import between_target
+    from endowave_cl.train.config import validate_config
+    for mode, other_mode in (("reverse", "colour"), ("colour", "reverse")):
+        tr = _trainer(scene, rt, tmp_path / mode, iterations=0, between_prob=1.0, densify_until=0,
+                      between_model=0.5, between_splat=mode)
+        got, pair, s, motion = _drawn_with_model_motion(tr, rt, 0.5)
+        f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+        t = (1 - s) * f0.time + s * f1.time
+        kw = dict(model_disp=motion(f0.camera, t, f0.time), model_weight=0.5,
+                  model_fwd=(motion(f0.camera, f0.time, t), motion(f1.camera, f1.time, t)))
+        want, other = (between_target(scene, pair, s, **kw, **_target_kw(tr, splat=m))[0] for m in (mode, other_mode))
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert not np.allclose(got, other, atol=1e-4)
+    with pytest.raises(EndowaveError, match="between_splat"):
+        validate_config(TrainConfig(between_splat="nearest"), "cfg.toml")
 
 
 def _drawn_with_model_motion(tr, rt, weight):
@@ -713,8 +759,8 @@ def _between_model(scene, rt, tmp_path):
     got, pair, s, motion = _drawn_with_model_motion(tr, rt, 0.5)
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     disp = motion(f0.camera, (1 - s) * f0.time + s * f1.time, f0.time)
-    want = between_target(scene, pair, s, sampler=tr.cfg.between_sampler, model_disp=disp, model_weight=0.5)[0]
-    alone = between_target(scene, pair, s, sampler=tr.cfg.between_sampler)[0]
+    want = between_target(scene, pair, s, model_disp=disp, model_weight=0.5, **_target_kw(tr))[0]
+    alone = between_target(scene, pair, s, **_target_kw(tr))[0]
     np.testing.assert_allclose(got, want, atol=1e-6)
     assert not np.allclose(got, alone, atol=1e-4)
     with pytest.raises(EndowaveError, match="between_model"):
@@ -731,7 +777,7 @@ def _between_model_splat(scene, rt, tmp_path):
         got, pair, s, motion = _drawn_with_model_motion(tr, rt, 1.0)
         f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
         t = (1 - s) * f0.time + s * f1.time
-        kw = dict(sampler=tr.cfg.between_sampler, model_disp=motion(f0.camera, t, f0.time), model_weight=1.0)
+        kw = dict(model_disp=motion(f0.camera, t, f0.time), model_weight=1.0, **_target_kw(tr))
         splatted = between_target(scene, pair, s, model_fwd=(motion(f0.camera, f0.time, t),
                                                              motion(f1.camera, f1.time, t)), **kw)[0]
         backward = between_target(scene, pair, s, **kw)[0]
@@ -798,6 +844,8 @@ CHECKS = {
     "between_model": _between_model,
     "between_fuse": _between_fuse,
     "between_model_splat": _between_model_splat,
+    "between_flow_splat": _between_flow_splat,
+    "between_splat": _between_splat,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

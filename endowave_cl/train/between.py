@@ -45,9 +45,23 @@ normalised, and the pixels that neither frame reaches keep the backward predicti
 training frames the model is fitted closely, so its motion there is better than the motion it
 renders between them, and a forward splat leaves a pixel that one frame cannot see to the other
 (docs/QUALITY.md finding 20).
+
+How a forward splat makes its image (``between_splat``): sharing each pixel's colour bilinearly
+among the four pixels around where it lands averages neighbouring pixels at fractional offsets,
+the blur of a bilinear backward warp ("colour").  "reverse" splats the displacement instead: at
+every pixel q that the frame reaches, the splatted mean of the displacements of the pixels that
+land there says where q's colour comes from, and the frame is sampled there with
+``between_sampler`` (bicubic); the two frames are blended with weights (1 - s) and s times how
+densely each reaches q, so that what one frame cannot see comes from the other.  With
+``between_flow_splat`` every flow hypothesis is pushed forward the same way (s F_kk' from the
+first frame, (1 - s) F_k'k from the second) instead of sampled backward, its backward warps
+filling the pixels that neither frame reaches (docs/QUALITY.md finding 21).
 """
 from __future__ import annotations
 
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
@@ -63,6 +77,9 @@ FUSE_RADIUS = 3
 FUSE_TAU = 0.02
 # how the hypotheses are combined (between_fuse): weighted by their warps' agreement, or averaged
 FUSE_MODES = ("agree", "mean")
+# how a forward splat makes its image (between_splat): the splatted displacement reversed and the
+# frame sampled along it, or the colours shared bilinearly
+SPLAT_MODES = ("reverse", "colour")
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
@@ -70,12 +87,14 @@ SPLAT_MIN_WEIGHT = 0.05
 
 def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
                         valid: Optional[Sequence[np.ndarray]] = None,
-                        mode: str = "agree") -> Tuple[np.ndarray, np.ndarray]:
+                        mode: str = "agree",
+                        blends: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]) fused from K hypotheses of the frame at fraction s (module
     docstring).  warps: [(W0, W1)] per hypothesis, frame 0 and frame 1 warped to s ([H, W, 3]
     each); valid: [H, W] per hypothesis, 0 where it must not be used (tool masks); weight is 1
     where at least one hypothesis is valid.  mode (FUSE_MODES): "agree" weighs the hypotheses by
-    how well their two warps agree, "mean" gives the valid ones equal weights."""
+    how well their two warps agree, "mean" gives the valid ones equal weights.  blends: each
+    hypothesis's image of the frame at s ([H, W, 3]); None: (1 - s) W0 + s W1."""
     if mode == "mean":
         err = np.zeros((len(warps),) + warps[0][0].shape[:2], np.float32)              # [K, H, W]
     else:
@@ -92,8 +111,9 @@ def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float
     w = np.exp((err.min(0) - err) * np.float32(1.0 / FUSE_TAU))                         # [K, H, W]
     w /= w.sum(0)
     image = np.zeros(warps[0][0].shape, np.float32)
-    for wk, (w0, w1) in zip(w, warps):
-        cv2.accumulateProduct(cv2.cvtColor(wk, cv2.COLOR_GRAY2RGB), cv2.addWeighted(w0, 1.0 - s, w1, s, 0.0), image)
+    for k, (wk, (w0, w1)) in enumerate(zip(w, warps)):
+        blend = cv2.addWeighted(w0, 1.0 - s, w1, s, 0.0) if blends is None else blends[k]
+        cv2.accumulateProduct(cv2.cvtColor(wk, cv2.COLOR_GRAY2RGB), blend, image)
     return image, any_ok.astype(np.float32)
 
 
@@ -116,7 +136,8 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
 def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
                    extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
                    model_weight: float = 0.0, fuse: str = "agree",
-                   model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray, float]:
+                   model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                   flow_splat: bool = False, splat: str = "colour") -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
@@ -128,22 +149,35 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     rendered flow to that time); the two frames warped along it (the second along the same motion
     scaled to its time) are blended into the target with model_weight.  model_fwd (g0, g1)
     [H, W, 2] each: where the model moves each pixel of the first and of the second frame by the
-    time at s; with it the model's prediction splats the frames forward along them
-    (splat_interpolation), the backward warps along model_disp filling what neither reaches."""
+    time at s; with it the model's prediction splats the frames forward along them, the backward
+    warps along model_disp filling what neither reaches.  flow_splat: every flow hypothesis pushes
+    its frames forward too (s F_kk' from the first frame, (1 - s) F_k'k from the second), its
+    backward warps filling the rest.  splat (SPLAT_MODES): how a forward splat makes its image,
+    "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation)."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    warps, valid = [], []
-    for p in (pair, *extra):
+
+    def hypothesis(p):
+        """(W0, W1, ok, the frame at s) of one estimator's flows"""
         if two_flow:
             d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
         else:
             d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
         w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
-        warps.append((w0, w1))
-        valid.append(ok)
+        blend = ((1.0 - s) * w0 + s * w1).astype(np.float32)
+        if flow_splat:
+            g0, g1 = s * np.asarray(p.flow, np.float32), (1.0 - s) * np.asarray(p.flow_bw, np.float32)
+            blend, w0, w1 = _splat(splat, f0, f1, g0, g1, s, sampler, blend, w0, w1)
+        return w0, w1, ok, blend
+    # the hypotheses are independent: numpy and OpenCV release the GIL in their array work, so
+    # threads use the cores that the device leaves idle while the host builds the target
+    hyps = list(_host_pool().map(hypothesis, (pair, *extra))) if extra else [hypothesis(pair)]
+    warps = [(w0, w1) for w0, w1, _, _ in hyps]
+    valid = [ok for _, _, ok, _ in hyps]
+    blends = [b for _, _, _, b in hyps]
     if len(warps) == 1:
-        image, weight = ((1.0 - s) * warps[0][0] + s * warps[0][1]).astype(np.float32), valid[0]
+        image, weight = blends[0], valid[0]
     else:
-        image, weight = fused_interpolation(warps, s, valid, fuse)
+        image, weight = fused_interpolation(warps, s, valid, fuse, blends)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
@@ -153,26 +187,84 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
         model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
         if model_fwd is not None:
-            model = splat_interpolation(f0, f1, model_fwd[0], model_fwd[1], s, model)
+            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1, parallel=True)[0]
         image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
         weight = weight * ok
     return image, weight, pair_time(scene, pair, s)
+
+
+@functools.lru_cache(maxsize=1)
+def _host_pool() -> ThreadPoolExecutor:
+    """The threads that build an in-between target's hypotheses, one per core (at most 8)."""
+    return ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="between")
+
+
+def _splat(mode: str, f0, f1, g0, g1, s: float, sampler: str, fill, fill0, fill1, parallel: bool = False):
+    """(image, W0, W1): the frame at s splatted forward as mode says (SPLAT_MODES); W0 and W1 the
+    two frames' own pushed images where they reach ("reverse"; fill0 and fill1 elsewhere), or
+    fill0 and fill1 unchanged ("colour", which makes no image per frame)."""
+    if mode == "colour":
+        return splat_interpolation(f0, f1, g0, g1, s, fill), fill0, fill1
+    return reversed_splat_interpolation(f0, f1, g0, g1, s, sampler, fill, fill0, fill1, parallel)
+
+
+def _source_weight(f) -> Optional[np.ndarray]:
+    """[H, W] 1 on tissue, 0 on tool pixels (not splatted), or None without a mask."""
+    return None if f.mask is None else (np.asarray(f.mask) > 0.5).astype(np.float32)
 
 
 def splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: np.ndarray) -> np.ndarray:
     """[H, W, 3]: the frame at fraction s from frames f0 and f1 splatted forward along g0 and g1
     ([H, W, 2]: each pixel's displacement from its frame to s; baselines.splat_forward), blended
     as ((1 - s) num0 + s num1) / ((1 - s) den0 + s den1); fill where that weight is below
-    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not splatted."""
+    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not splatted.  The colours are shared bilinearly
+    among the four pixels around where they land, which at fractional offsets averages
+    neighbouring pixels (a low-pass, as a bilinear backward warp)."""
     num, den = None, None
     for f, g, a in ((f0, g0, 1.0 - s), (f1, g1, s)):
-        src = None if f.mask is None else (np.asarray(f.mask) > 0.5).astype(np.float32)
-        n, d = splat_forward(f.image, np.asarray(g, np.float32), src)
+        n, d = splat_forward(f.image, np.asarray(g, np.float32), _source_weight(f))
         num = a * n if num is None else num + a * n
         den = a * d if den is None else den + a * d
     out = np.array(fill, np.float32, copy=True)
     np.divide(num, den[..., None], out=out, where=(den > SPLAT_MIN_WEIGHT)[..., None])
     return out
+
+
+def reversed_splat(image: np.ndarray, g: np.ndarray, sampler: str, source_weight=None):
+    """(pushed [H, W, C], reach [H, W]) of image [H, W, C] pushed forward along g ([H, W, 2]): the
+    displacement itself is splatted forward (baselines.splat_forward) and normalised, which gives
+    at every pixel q that a source pixel reaches where its colour comes from, q - g; the image is
+    sampled there with sampler (bicubic keeps the texture a bilinear colour splat averages away).
+    reach: the splatted weight (0 where nothing lands, and pushed is the image sampled at q)."""
+    g = np.asarray(g, np.float32)
+    num, den = splat_forward(-g, g, source_weight)                                    # [H, W, 2], [H, W]
+    back = np.zeros_like(g)
+    np.divide(num, den[..., None], out=back, where=(den > SPLAT_MIN_WEIGHT)[..., None])
+    return sample_displaced(image, back, sampler), den
+
+
+def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, sampler: str,
+                                 fill: np.ndarray, fill0: np.ndarray, fill1: np.ndarray, parallel: bool = False):
+    """(image, W0, W1) [H, W, 3] each: frames f0 and f1 pushed forward along g0 and g1 to fraction
+    s (reversed_splat), blended with weights (1 - s) reach0 and s reach1 (a pixel that one frame
+    reaches and the other does not, or reaches thinly, comes from the first); fill where that
+    weight is below SPLAT_MIN_WEIGHT.  W0 (W1): f0 (f1) pushed, fill0 (fill1) where it does not
+    reach.  Tool pixels (masks) are not pushed.  parallel: push the two frames in the host pool's
+    threads (not from one of its own threads)."""
+    image = np.zeros(fill.shape, np.float32)
+    total = np.zeros(fill.shape[:2], np.float32)
+    pushed = []
+    sides = ((f0, g0, 1.0 - s, fill0), (f1, g1, s, fill1))
+    push = lambda side: reversed_splat(side[0].image, side[1], sampler, _source_weight(side[0]))  # noqa: E731
+    for (f, g, a, other), (w, reach) in zip(sides, _host_pool().map(push, sides) if parallel else map(push, sides)):
+        ok = reach > SPLAT_MIN_WEIGHT
+        wt = np.where(ok, np.float32(a) * reach, np.float32(0))                          # [H, W]
+        image += wt[..., None] * w
+        total += wt
+        pushed.append(np.where(ok[..., None], w, other).astype(np.float32))
+    out = np.array(fill, np.float32, copy=True)
+    np.divide(image, total[..., None], out=out, where=(total > SPLAT_MIN_WEIGHT)[..., None])
+    return out, pushed[0], pushed[1]
 
 
 def _warp_pair(f0, f1, d0, d1, sampler: str):
@@ -197,13 +289,14 @@ class BetweenSampler:
     (where a held-out frame splits the training frames, the pair around it spans twice the time of
     its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
     into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
-    prediction splats the frames forward (between_target's model_fwd)."""
+    prediction splats the frames forward (between_target's model_fwd); flow_splat and splat: as
+    between_target's."""
 
     def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
                  extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
-                 model_splat: bool = False):
+                 model_splat: bool = False, flow_splat: bool = False, splat: str = "colour"):
         self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
-        self.model_splat = model_splat
+        self.model_splat, self.flow_splat, self.splat = model_splat, flow_splat, splat
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
         self.pair_prob = None                                                   # [P] or uniform
@@ -239,7 +332,7 @@ class BetweenSampler:
             if self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                                          disp, model_weight, self.fuse, fwd)
+                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat)
         if not weight.any():
             return None
         return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight, temporary=True)

@@ -83,7 +83,9 @@ class TrainConfig:
                                     # share) instead of uniformly over the pairs
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
                                     # (Super SloMo's intermediate flow, baselines.py
-                                    # two_flow_displacements) instead of each frame's own flow
+                                    # two_flow_displacements) instead of each frame's own flow;
+                                    # with between_flow_splat, the backward warps that fill what
+                                    # no pixel reaches
     between_sampler: str = "cubic"  # how the in-between target samples the two frames between
                                     # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
@@ -94,9 +96,13 @@ class TrainConfig:
                                     # each one's two warps agree (train/between.py
                                     # fused_interpolation; docs/QUALITY.md finding 20); "":
                                     # flow_method's alone
-    between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
+    between_fuse: str = "mean"      # how between_flows' hypotheses are combined: "agree" weighs each
                                     # pixel's by how well its two warps agree, "mean" averages them
-                                    # (docs/QUALITY.md finding 20)
+                                    # (docs/QUALITY.md findings 20, 21)
+    between_flow_splat: bool = True  # each flow hypothesis pushes the two frames forward along the
+                                    # flow (a forward splat, as between_splat says) instead of
+                                    # sampling them backward; its backward warps fill the pixels
+                                    # that no source pixel reaches (docs/QUALITY.md finding 21)
     between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
@@ -107,6 +113,12 @@ class TrainConfig:
                                     # their own times (two more renders per such step) instead of
                                     # sampling them along the motion it renders at s (train/
                                     # between.py splat_interpolation; docs/QUALITY.md finding 20)
+    between_splat: str = "reverse"  # how a forward splat makes its image (train/between.py
+                                    # SPLAT_MODES): "reverse" splats the displacement, reverses it
+                                    # and samples the frame along it with between_sampler;
+                                    # "colour" shares the colours bilinearly among the four pixels
+                                    # where they land, which blurs at fractional offsets
+                                    # (docs/QUALITY.md finding 21)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
@@ -361,10 +373,13 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
-    from .between import FUSE_MODES
+    from .between import FUSE_MODES, SPLAT_MODES
     if cfg.between_fuse not in FUSE_MODES:
         raise EndowaveError(f"{source}: key 'between_fuse' must be one of {', '.join(FUSE_MODES)}, "
                             f"got {cfg.between_fuse!r}")
+    if cfg.between_splat not in SPLAT_MODES:
+        raise EndowaveError(f"{source}: key 'between_splat' must be one of {', '.join(SPLAT_MODES)}, "
+                            f"got {cfg.between_splat!r}")
     from ..data.flow import METHODS
     for m in between_flow_methods(cfg):
         if m not in METHODS:

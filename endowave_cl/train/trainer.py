@@ -119,7 +119,8 @@ class Trainer:
         from .between import BetweenSampler
         self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
                                        cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
-                                       cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat)
+                                       cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat,
+                                       cfg.between_flow_splat, cfg.between_splat)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
