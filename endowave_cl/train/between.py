@@ -156,21 +156,29 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation)."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
 
-    def hypothesis(p):
-        """(W0, W1, ok, the frame at s) of one estimator's flows"""
+    def backward(p):
+        """(W0, W1, ok): the frames sampled backward along one estimator's flows"""
         if two_flow:
             d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
         else:
             d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
-        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
-        blend = ((1.0 - s) * w0 + s * w1).astype(np.float32)
-        if flow_splat:
-            g0, g1 = s * np.asarray(p.flow, np.float32), (1.0 - s) * np.asarray(p.flow_bw, np.float32)
-            blend, w0, w1 = _splat(splat, f0, f1, g0, g1, s, sampler, blend, w0, w1)
-        return w0, w1, ok, blend
-    # the hypotheses are independent: numpy and OpenCV release the GIL in their array work, so
-    # threads use the cores that the device leaves idle while the host builds the target
-    hyps = list(_host_pool().map(hypothesis, (pair, *extra))) if extra else [hypothesis(pair)]
+        return _warp_pair(f0, f1, d0, d1, sampler)
+
+    # the hypotheses' warps and splats are independent: numpy and OpenCV release the GIL in most of
+    # their array work, so the host pool's threads use the cores the device leaves idle meanwhile
+    sources = (pair, *extra)
+    pool = _host_pool()
+    hyps = []
+    for p, (w0, w1, ok) in zip(sources, pool.map(backward, sources)):
+        hyps.append((w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)))
+    if flow_splat:
+        fwd = [(f0, s * np.asarray(p.flow, np.float32)) for p in sources]
+        bwd = [(f1, (1.0 - s) * np.asarray(p.flow_bw, np.float32)) for p in sources]
+        pushes = list(pool.map(_push(sampler), fwd + bwd)) if splat == "reverse" else [None] * (2 * len(sources))
+        for h, (w0, w1, ok, blend) in enumerate(hyps):
+            blend, w0, w1 = _splat(splat, f0, f1, fwd[h][1], bwd[h][1], s, sampler, blend, w0, w1,
+                                   pushed=(pushes[h], pushes[len(sources) + h]))
+            hyps[h] = (w0, w1, ok, blend)
     warps = [(w0, w1) for w0, w1, _, _ in hyps]
     valid = [ok for _, _, ok, _ in hyps]
     blends = [b for _, _, _, b in hyps]
@@ -187,7 +195,7 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
         w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
         model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
         if model_fwd is not None:
-            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1, parallel=True)[0]
+            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
         image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
         weight = weight * ok
     return image, weight, pair_time(scene, pair, s)
@@ -199,13 +207,21 @@ def _host_pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="between")
 
 
-def _splat(mode: str, f0, f1, g0, g1, s: float, sampler: str, fill, fill0, fill1, parallel: bool = False):
+def _splat(mode: str, f0, f1, g0, g1, s: float, sampler: str, fill, fill0, fill1, pushed=(None, None)):
     """(image, W0, W1): the frame at s splatted forward as mode says (SPLAT_MODES); W0 and W1 the
     two frames' own pushed images where they reach ("reverse"; fill0 and fill1 elsewhere), or
-    fill0 and fill1 unchanged ("colour", which makes no image per frame)."""
+    fill0 and fill1 unchanged ("colour", which makes no image per frame).  pushed: the two frames'
+    reversed_splat results when they were made already."""
     if mode == "colour":
         return splat_interpolation(f0, f1, g0, g1, s, fill), fill0, fill1
-    return reversed_splat_interpolation(f0, f1, g0, g1, s, sampler, fill, fill0, fill1, parallel)
+    if pushed[0] is None or pushed[1] is None:
+        pushed = tuple(_host_pool().map(_push(sampler), ((f0, g0), (f1, g1))))
+    return reversed_splat_interpolation(f0, f1, g0, g1, s, sampler, fill, fill0, fill1, pushed)
+
+
+def _push(sampler: str):
+    """(frame, g) -> reversed_splat of the frame's image along g, its tool pixels left out."""
+    return lambda item: reversed_splat(item[0].image, item[1], sampler, _source_weight(item[0]))
 
 
 def _source_weight(f) -> Optional[np.ndarray]:
@@ -244,27 +260,27 @@ def reversed_splat(image: np.ndarray, g: np.ndarray, sampler: str, source_weight
 
 
 def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, sampler: str,
-                                 fill: np.ndarray, fill0: np.ndarray, fill1: np.ndarray, parallel: bool = False):
+                                 fill: np.ndarray, fill0: np.ndarray, fill1: np.ndarray, pushed=None):
     """(image, W0, W1) [H, W, 3] each: frames f0 and f1 pushed forward along g0 and g1 to fraction
     s (reversed_splat), blended with weights (1 - s) reach0 and s reach1 (a pixel that one frame
     reaches and the other does not, or reaches thinly, comes from the first); fill where that
     weight is below SPLAT_MIN_WEIGHT.  W0 (W1): f0 (f1) pushed, fill0 (fill1) where it does not
-    reach.  Tool pixels (masks) are not pushed.  parallel: push the two frames in the host pool's
-    threads (not from one of its own threads)."""
+    reach.  Tool pixels (masks) are not pushed.  pushed: the two frames' reversed_splat results
+    ((image, reach) each) when they were made already."""
+    if pushed is None:
+        pushed = [_push(sampler)(item) for item in ((f0, g0), (f1, g1))]
     image = np.zeros(fill.shape, np.float32)
     total = np.zeros(fill.shape[:2], np.float32)
-    pushed = []
-    sides = ((f0, g0, 1.0 - s, fill0), (f1, g1, s, fill1))
-    push = lambda side: reversed_splat(side[0].image, side[1], sampler, _source_weight(side[0]))  # noqa: E731
-    for (f, g, a, other), (w, reach) in zip(sides, _host_pool().map(push, sides) if parallel else map(push, sides)):
+    out_pushed = []
+    for a, other, (w, reach) in ((1.0 - s, fill0, pushed[0]), (s, fill1, pushed[1])):
         ok = reach > SPLAT_MIN_WEIGHT
         wt = np.where(ok, np.float32(a) * reach, np.float32(0))                          # [H, W]
         image += wt[..., None] * w
         total += wt
-        pushed.append(np.where(ok[..., None], w, other).astype(np.float32))
+        out_pushed.append(np.where(ok[..., None], w, other).astype(np.float32))
     out = np.array(fill, np.float32, copy=True)
     np.divide(image, total[..., None], out=out, where=(total > SPLAT_MIN_WEIGHT)[..., None])
-    return out, pushed[0], pushed[1]
+    return out, out_pushed[0], out_pushed[1]
 
 
 def _warp_pair(f0, f1, d0, d1, sampler: str):
