@@ -723,7 +723,7 @@ def _between_splat(scene, rt, tmp_path):
     from endowave_cl.train.config import validate_config
     for mode, other_mode in (("reverse", "colour"), ("colour", "reverse")):
         tr = _trainer(scene, rt, tmp_path / mode, iterations=0, between_prob=1.0, densify_until=0,
-                      between_model=0.5, between_splat=mode)
+                      between_model=0.5, between_splat=mode, between_flow_splat=True)
         got, pair, s, motion = _drawn_with_model_motion(tr, rt, 0.5)
         f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
         t = (1 - s) * f0.time + s * f1.time

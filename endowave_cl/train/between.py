@@ -185,7 +185,7 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     if len(warps) == 1:
         image, weight = blends[0], valid[0]
     else:
-        image, weight = fused_interpolation(warps, s, valid, fuse, blends)
+        image, weight = fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second

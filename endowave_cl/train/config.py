@@ -96,13 +96,17 @@ class TrainConfig:
                                     # each one's two warps agree (train/between.py
                                     # fused_interpolation; docs/QUALITY.md finding 20); "":
                                     # flow_method's alone
-    between_fuse: str = "mean"      # how between_flows' hypotheses are combined: "agree" weighs each
+    between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
                                     # pixel's by how well its two warps agree, "mean" averages them
                                     # (docs/QUALITY.md findings 20, 21)
-    between_flow_splat: bool = True  # each flow hypothesis pushes the two frames forward along the
-                                    # flow (a forward splat, as between_splat says) instead of
-                                    # sampling them backward; its backward warps fill the pixels
-                                    # that no source pixel reaches (docs/QUALITY.md finding 21)
+    between_flow_splat: bool = False  # each flow hypothesis pushes the two frames forward along
+                                    # the flow (a forward splat, as between_splat says) instead of
+                                    # sampling them backward, its backward warps filling the pixels
+                                    # that no source pixel reaches.  With between_splat = "reverse"
+                                    # and between_fuse = "mean": +0.04-0.09 dB on pulling, +0.13-0.22
+                                    # on the synthetic scenes, 26 % more training time on 2 CPU
+                                    # cores (eight host splats per in-between step), so off by
+                                    # default (docs/QUALITY.md finding 21)
     between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
@@ -113,12 +117,12 @@ class TrainConfig:
                                     # their own times (two more renders per such step) instead of
                                     # sampling them along the motion it renders at s (train/
                                     # between.py splat_interpolation; docs/QUALITY.md finding 20)
-    between_splat: str = "reverse"  # how a forward splat makes its image (train/between.py
-                                    # SPLAT_MODES): "reverse" splats the displacement, reverses it
-                                    # and samples the frame along it with between_sampler;
-                                    # "colour" shares the colours bilinearly among the four pixels
-                                    # where they land, which blurs at fractional offsets
-                                    # (docs/QUALITY.md finding 21)
+    between_splat: str = "colour"   # how a forward splat makes its image (train/between.py
+                                    # SPLAT_MODES): "colour" shares the colours bilinearly among
+                                    # the four pixels where they land, which blurs at fractional
+                                    # offsets; "reverse" splats the displacement, reverses it and
+                                    # samples the frame along it with between_sampler (sharper
+                                    # targets; docs/QUALITY.md finding 21)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
