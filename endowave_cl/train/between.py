@@ -154,6 +154,15 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     its frames forward too (s F_kk' from the first frame, (1 - s) F_k'k from the second), its
     backward warps filling the rest.  splat (SPLAT_MODES): how a forward splat makes its image,
     "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation)."""
+    image, weight = flow_prediction(scene, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat)
+    return model_blend(scene, pair, s, image, weight, model_disp, model_weight, sampler, model_fwd, splat)
+
+
+def flow_prediction(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
+                    extra: Sequence[object] = (), fuse: str = "agree", flow_splat: bool = False,
+                    splat: str = "colour") -> Tuple[np.ndarray, np.ndarray]:
+    """(image [H, W, 3], weight [H, W]): the flow half of between_target (its arguments), which
+    needs no render: the frame at s predicted from the pair's flows alone."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
 
     def backward(p):
@@ -183,9 +192,17 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     valid = [ok for _, _, ok, _ in hyps]
     blends = [b for _, _, _, b in hyps]
     if len(warps) == 1:
-        image, weight = blends[0], valid[0]
-    else:
-        image, weight = fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
+        return blends[0], valid[0]
+    return fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
+
+
+def model_blend(scene, pair, s: float, image: np.ndarray, weight: np.ndarray,
+                model_disp: Optional[np.ndarray] = None, model_weight: float = 0.0, sampler: str = "linear",
+                model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                splat: str = "colour") -> Tuple[np.ndarray, np.ndarray, float]:
+    """between_target's result from the flow half (image, weight: flow_prediction's) and the
+    model's motion (the other arguments as between_target's)."""
+    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
@@ -329,26 +346,40 @@ class BetweenSampler:
     def __bool__(self) -> bool:
         return bool(self.pairs)
 
-    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0):
+    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0, render_at=None):
         """(camera, time, device targets) of one in-between step, or None where nothing is
         supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
         from t to t_to, blended into the target with model_weight (between_target); it is called
-        first at the step's own time, then (model_splat) at the pair's two frames' times."""
+        first at the step's own time, then (model_splat) at the pair's two frames' times.
+        render_at(camera, t): called instead when the model's motion is not used, to render the
+        step's forward.  The target's flow half is built on the host while those renders run."""
         from .device_losses import prepare_targets
         if self.pair_prob is None:
             pair = self.pairs[int(rng.integers(len(self.pairs)))]
         else:
             pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
         s = float(rng.uniform(0.0, 1.0))
+        f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
+        t = pair_time(self.scene, pair, s)
+        flow_half = _prefetch_pool().submit(flow_prediction, self.scene, pair, s, self.two_flow, self.sampler,
+                                            self.extra(pair), self.fuse, self.flow_splat, self.splat)
         disp = fwd = None
         if model_flow is not None and model_weight > 0.0:
-            f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-            t = pair_time(self.scene, pair, s)
             disp = model_flow(f0.camera, t, float(f0.time))
             if self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
-        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat)
+        elif render_at is not None:
+            render_at(f0.camera, t)
+        image, weight = flow_half.result()
+        image, weight, t = model_blend(self.scene, pair, s, image, weight, disp, model_weight, self.sampler, fwd,
+                                       self.splat)
         if not weight.any():
             return None
-        return self.scene.frames[pair.src].camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+        return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+
+
+@functools.lru_cache(maxsize=1)
+def _prefetch_pool() -> ThreadPoolExecutor:
+    """One thread that builds an in-between target's flow half while the main thread renders (its
+    own hypotheses go to _host_pool, whose threads it never occupies)."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="between-target")
