@@ -60,6 +60,8 @@ def main(argv=None):
                          "kernel time means the host (launches, read-backs) is what the step waits for")
     ap.add_argument("--top", type=int, default=8, help="how many of the slowest kernels --kernels prints")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a training config key (endowave_cl/train/config.py), e.g. --set between_flow_splat=true")
     args = ap.parse_args(argv)
 
     from endowave_cl.data.scene import load_scene
@@ -87,6 +89,9 @@ def main(argv=None):
                       adam_skip_culled=args.adam_skip_culled)
     if args.sh_degree is not None:
         cfg.sh_degree = args.sh_degree
+    if args.set:
+        from endowave_cl.train.config import apply_values
+        apply_values(cfg, dict(item.split("=", 1) for item in args.set), "--set", from_text=True)
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
         if args.checkpoint:
