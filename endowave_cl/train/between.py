@@ -154,16 +154,27 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     its frames forward too (s F_kk' from the first frame, (1 - s) F_k'k from the second), its
     backward warps filling the rest.  splat (SPLAT_MODES): how a forward splat makes its image,
     "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation)."""
-    image, weight = flow_prediction(scene, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat)
-    return model_blend(scene, pair, s, image, weight, model_disp, model_weight, sampler, model_fwd, splat)
-
-
-def flow_prediction(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
-                    extra: Sequence[object] = (), fuse: str = "agree", flow_splat: bool = False,
-                    splat: str = "colour") -> Tuple[np.ndarray, np.ndarray]:
-    """(image [H, W, 3], weight [H, W]): the flow half of between_target (its arguments), which
-    needs no render: the frame at s predicted from the pair's flows alone."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+    image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat)
+    if model_disp is not None and model_weight > 0.0:
+        # the Gaussians' means move linearly in time, so the displacement to the second frame is
+        # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
+        # frame has no weight)
+        d0 = np.asarray(model_disp, np.float32)
+        d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
+        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
+        model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
+        if model_fwd is not None:
+            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
+        image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
+        weight = weight * ok
+    return image, weight, pair_time(scene, pair, s)
+
+
+def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra: Sequence[object], fuse: str,
+                     flow_splat: bool, splat: str) -> Tuple[np.ndarray, np.ndarray]:
+    """(image [H, W, 3], weight [H, W]): between_target's flow half, the frame at s predicted from
+    the pair's flows alone (its arguments)."""
 
     def backward(p):
         """(W0, W1, ok): the frames sampled backward along one estimator's flows"""
@@ -177,9 +188,7 @@ def flow_prediction(scene, pair, s: float, two_flow: bool = False, sampler: str 
     # their array work, so the host pool's threads use the cores the device leaves idle meanwhile
     sources = (pair, *extra)
     pool = _host_pool()
-    hyps = []
-    for p, (w0, w1, ok) in zip(sources, pool.map(backward, sources)):
-        hyps.append((w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)))
+    hyps = [(w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)) for w0, w1, ok in pool.map(backward, sources)]
     if flow_splat:
         fwd = [(f0, s * np.asarray(p.flow, np.float32)) for p in sources]
         bwd = [(f1, (1.0 - s) * np.asarray(p.flow_bw, np.float32)) for p in sources]
@@ -194,28 +203,6 @@ def flow_prediction(scene, pair, s: float, two_flow: bool = False, sampler: str 
     if len(warps) == 1:
         return blends[0], valid[0]
     return fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
-
-
-def model_blend(scene, pair, s: float, image: np.ndarray, weight: np.ndarray,
-                model_disp: Optional[np.ndarray] = None, model_weight: float = 0.0, sampler: str = "linear",
-                model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                splat: str = "colour") -> Tuple[np.ndarray, np.ndarray, float]:
-    """between_target's result from the flow half (image, weight: flow_prediction's) and the
-    model's motion (the other arguments as between_target's)."""
-    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    if model_disp is not None and model_weight > 0.0:
-        # the Gaussians' means move linearly in time, so the displacement to the second frame is
-        # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
-        # frame has no weight)
-        d0 = np.asarray(model_disp, np.float32)
-        d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
-        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
-        model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
-        if model_fwd is not None:
-            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
-        image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
-        weight = weight * ok
-    return image, weight, pair_time(scene, pair, s)
 
 
 @functools.lru_cache(maxsize=1)
@@ -346,13 +333,11 @@ class BetweenSampler:
     def __bool__(self) -> bool:
         return bool(self.pairs)
 
-    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0, render_at=None):
+    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0):
         """(camera, time, device targets) of one in-between step, or None where nothing is
         supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
         from t to t_to, blended into the target with model_weight (between_target); it is called
-        first at the step's own time, then (model_splat) at the pair's two frames' times.
-        render_at(camera, t): called instead when the model's motion is not used, to render the
-        step's forward.  The target's flow half is built on the host while those renders run."""
+        first at the step's own time, then (model_splat) at the pair's two frames' times."""
         from .device_losses import prepare_targets
         if self.pair_prob is None:
             pair = self.pairs[int(rng.integers(len(self.pairs)))]
@@ -360,26 +345,14 @@ class BetweenSampler:
             pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
         s = float(rng.uniform(0.0, 1.0))
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-        t = pair_time(self.scene, pair, s)
-        flow_half = _prefetch_pool().submit(flow_prediction, self.scene, pair, s, self.two_flow, self.sampler,
-                                            self.extra(pair), self.fuse, self.flow_splat, self.splat)
         disp = fwd = None
         if model_flow is not None and model_weight > 0.0:
+            t = pair_time(self.scene, pair, s)
             disp = model_flow(f0.camera, t, float(f0.time))
             if self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
-        elif render_at is not None:
-            render_at(f0.camera, t)
-        image, weight = flow_half.result()
-        image, weight, t = model_blend(self.scene, pair, s, image, weight, disp, model_weight, self.sampler, fwd,
-                                       self.splat)
+        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
+                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat)
         if not weight.any():
             return None
         return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
-
-
-@functools.lru_cache(maxsize=1)
-def _prefetch_pool() -> ThreadPoolExecutor:
-    """One thread that builds an in-between target's flow half while the main thread renders (its
-    own hypotheses go to _host_pool, whose threads it never occupies)."""
-    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="between-target")

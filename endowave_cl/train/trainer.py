@@ -219,8 +219,7 @@ class Trainer:
         step's forward renders the flow to the pair's first frame, and the target blends in the
         frames warped along it: one render, read back before the target is made; with
         between_model_splat two more renders at the pair's frames give the motion along which
-        the frames are splatted forward.  Without it the step's forward is rendered while the host
-        builds the target, too."""
+        the frames are splatted forward."""
         forward = {}
 
         def model_motion(camera, t: float, t_to: float) -> np.ndarray:
@@ -228,12 +227,8 @@ class Trainer:
             forward.setdefault("out", out)     # the first render is at the step's own time
             return self.rendered_motion(out)
 
-        def render_at(camera, t: float) -> None:
-            forward["out"] = render(self.rt, self.params, camera, t, None)
-
         use_model = self.cfg.between_model > 0 and self.step >= self.cfg.densify_until
-        drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model,
-                                   render_at)
+        drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model)
         if drawn is None:
             return None
         camera, t, dev = drawn
