@@ -117,24 +117,37 @@ def splat_forward(image: np.ndarray, disp: np.ndarray, weight: Optional[np.ndarr
     # the others (and non-finite motion) go to one spare bin past the canvas; the four corners land
     # on a canvas one pixel wider on every side, so that no corner needs its own bounds test
     reach = (x0 >= -1) & (x0 <= w - 1) & (y0 >= -1) & (y0 <= h - 1)
-    base = reach.astype(np.float32) if weight is None else np.where(reach, np.asarray(weight, np.float32).ravel(), 0)
     cw = w + 2
     size = (h + 2) * cw
-    i00 = np.where(reach, (np.where(reach, y0, 0).astype(np.int64) + 1) * cw
-                   + np.where(reach, x0, 0).astype(np.int64) + 1, size)
+    # corner (x0, y0)'s index on the canvas, exact in float32 (size < 2^24); the spare bin where
+    # the pixel reaches nothing
+    if size >= 1 << 24:
+        raise ValueError(f"splat_forward: {w}x{h} is too large an image")
+    lin = (y0 + 1) * cw + (x0 + 1)
+    lin[~reach] = size
+    i00 = lin.astype(np.int64)
     idx = np.empty((4, h * w), np.int64)                                                # [4, HW]
     idx[0] = i00
     for k, off in ((1, 1), (2, cw), (3, cw + 1)):
         np.add(i00, off, out=idx[k])
-        idx[k][~reach] = size
+    idx[1:, ~reach] = size
     gx, gy = 1 - fx, 1 - fy
     wts = np.empty((4, h * w), np.float64)                                              # [4, HW]
-    wts[0], wts[1], wts[2], wts[3] = gx * gy, fx * gy, gx * fy, fx * fy
-    wts *= base
+    for k, (a, b) in enumerate(((gx, gy), (fx, gy), (gx, fy), (fx, fy))):
+        np.multiply(a, b, out=wts[k])          # the float32 product, stored as float64
+    if weight is None:
+        wts[:, ~reach] = 0.0
+    else:
+        wts *= np.where(reach, np.asarray(weight, np.float32).ravel(), 0)
     wts[~np.isfinite(wts)] = 0.0
     idx = idx.ravel()
     den = np.bincount(idx, wts.ravel(), size + 1)[:size]
-    num = np.stack([np.bincount(idx, (wts * img[:, c]).ravel(), size + 1)[:size] for c in range(img.shape[1])], -1)
+    term = np.empty_like(wts)
+    cols = []
+    for c in range(img.shape[1]):
+        np.multiply(wts, img[:, c], out=term)
+        cols.append(np.bincount(idx, term.ravel(), size + 1)[:size])
+    num = np.stack(cols, -1)
     crop = (slice(1, h + 1), slice(1, w + 1))
     return (num.reshape(h + 2, cw, -1)[crop].astype(np.float32),
             den.reshape(h + 2, cw)[crop].astype(np.float32))

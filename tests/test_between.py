@@ -297,7 +297,9 @@ def test_between_target_blends_the_models_motion():
 
 def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tmp_path):
     """between_model > 0: from densify_until on, each in-between step's forward renders the flow to
-    the pair's first frame and the target is made from it; before, and with weight 0, never."""
+    the pair's first frame and the target is made from it; before, and with weight 0, never.  (The
+    pair's motion rendered to the step's time each step: between_motion_refresh 0; kept per pair:
+    test_config_keys.)"""
     from endowave_cl.data.scene import load_scene
     from endowave_cl.train.trainer import Trainer
     scene = load_scene(tiny_scene)
@@ -305,7 +307,7 @@ def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tm
     for weight, start, want, splat in ((0.5, 3, 3, False), (0.5, 3, 3, True), (0.0, 0, 0, True)):
         tr = Trainer(scene, tiny_config(iterations=6, init_points=2000, between_prob=1.0, densify_from=1000,
                                         densify_until=start, between_model=weight, log_every=1,
-                                        between_model_splat=splat),
+                                        between_model_splat=splat, between_motion_refresh=0),
                      tmp_path / f"run{weight}{splat}", rt, log=lambda s: None)
         calls, forwards = [], []
         real_motion, real_step = tr.rendered_motion, tr._step
@@ -485,3 +487,46 @@ def test_between_target_pushes_the_flows_frames_forward():
     pushed = between_target(scene, pair, 0.25, sampler="cubic", flow_splat=True, splat="reverse")[0]
     np.testing.assert_allclose(pushed[inner], backward[inner], atol=1e-5)   # a uniform motion reverses exactly
     assert not np.allclose(pushed, backward, atol=1e-4)                # the borders differ
+
+
+def _field(h, w, value):
+    return np.broadcast_to(np.float32(value), (h, w, len(value)))
+
+
+def test_consistent_flows_takes_the_estimator_whose_flow_returns():
+    """consistent_flows: per pixel, the estimator whose forward and backward flows cancel wins
+    (weights exp(-(e - e_min) / PUSH_TAU)); where the estimators are equally consistent, their mean;
+    one estimator alone is returned as it is."""
+    from types import SimpleNamespace
+    from endowave_cl.train.between import PUSH_TAU, consistent_flows
+    H, W = 24, 32
+    right = SimpleNamespace(flow=np.full((H, W, 2), [1.0, 0.0], np.float32), flow_bw=np.full((H, W, 2), [-1.0, 0.0], np.float32))
+    wrong = SimpleNamespace(flow=np.full((H, W, 2), [3.0, 0.0], np.float32), flow_bw=np.zeros((H, W, 2), np.float32))
+    flow, flow_bw = consistent_flows([wrong, right])
+    w_wrong = np.exp(-3.0 / PUSH_TAU) / (1 + np.exp(-3.0 / PUSH_TAU))     # its fb error is 3 px, the other's 0
+    np.testing.assert_allclose(flow[4:-4, 4:-4], _field(16, 24, [1 + 2 * w_wrong, 0.0]), atol=1e-5)
+    # the other way: right returns (error 0), wrong's zero flow_bw lands on its own 3 px flow (error 3)
+    np.testing.assert_allclose(flow_bw[4:-4, 4:-4], _field(16, 24, [-(1 - w_wrong), 0.0]), atol=1e-5)
+    other = SimpleNamespace(flow=np.full((H, W, 2), [1.0, 0.5], np.float32), flow_bw=np.full((H, W, 2), [-1.0, -0.5], np.float32))
+    np.testing.assert_allclose(consistent_flows([right, other])[0][4:-4, 4:-4], _field(16, 24, [1.0, 0.25]), atol=1e-6)
+    alone = consistent_flows([wrong])
+    assert alone[0] is not None and np.array_equal(alone[0], wrong.flow) and np.array_equal(alone[1], wrong.flow_bw)
+
+
+def test_between_target_pushes_once_along_the_consistent_flow():
+    """push = "fused": the frames are pushed once, along the estimators' flows fused by consistency;
+    a wrong, inconsistent second estimator is outvoted where "each" would push along it too."""
+    import dataclasses as dc
+    from endowave_cl.train.between import between_target, consistent_flows
+    scene, pair, tex = _scene_and_pair()
+    H, W = pair.flow.shape[:2]
+    wrong = dc.replace(pair, flow=pair.flow + np.float32([3.0, 0.0]), flow_bw=np.zeros_like(pair.flow_bw))
+    inner = (slice(8, -8), slice(8, -8))
+    truth = scene.frames[1].image[inner]
+    kw = dict(sampler="cubic", extra=[wrong], flow_splat=True, splat="reverse", fuse="mean")
+    fused = between_target(scene, pair, 0.5, push="fused", **kw)[0]
+    each = between_target(scene, pair, 0.5, push="each", **kw)[0]
+    np.testing.assert_allclose(fused[inner], truth, atol=3e-3)
+    assert np.abs(each[inner] - truth).mean() > 5 * np.abs(fused[inner] - truth).mean()
+    given = between_target(scene, pair, 0.5, push="fused", pushed_flows=consistent_flows([pair, wrong]), **kw)[0]
+    np.testing.assert_array_equal(given, fused)

@@ -21,6 +21,15 @@ def test_replan_scales_the_schedule_shape():
     assert not plan.out_of_time()
 
 
+def test_replan_keeps_a_scaled_key_that_is_off():
+    """A schedule key at 0 (off) stays 0; a positive one scales with the plan."""
+    for refresh in (0, 500):
+        cfg = TrainConfig(iterations=3000, between_motion_refresh=refresh)
+        plan = BudgetPlan.start(cfg, minutes=1.0, reserve=0.0)
+        total = plan.replan(cfg, step=0, seconds_per_step=0.1)
+        assert cfg.between_motion_refresh == (round(refresh * total / 3000) if refresh else 0)
+
+
 @pytest.mark.slow
 def test_minutes_stops_within_budget(rt, tmp_path):
     from endowave_cl.data.scene import load_scene

@@ -42,7 +42,7 @@ def _target_kw(tr, **over):
     """between_target's keywords as the trainer's in-between keys set them, with over's changes."""
     c = tr.cfg
     return {**dict(sampler=c.between_sampler, fuse=c.between_fuse, flow_splat=c.between_flow_splat,
-                   splat=c.between_splat), **over}
+                   splat=c.between_splat, push=c.between_push), **over}
 
 
 # ------------------------------------------------------------------ the training loop, steps stubbed
@@ -680,8 +680,8 @@ def _between_fuse(scene, rt, tmp_path):
     from endowave_cl.train.between import between_target
     from endowave_cl.train.config import validate_config
     for fuse, other_fuse in (("mean", "agree"), ("agree", "mean")):
-        tr = _trainer(scene, rt, tmp_path / fuse, iterations=0, between_prob=1.0,
-                      between_flows="farneback", between_fuse=fuse)
+        tr = _trainer(scene, rt, tmp_path / fuse, iterations=0, between_prob=1.0,   # the backward warps
+                      between_flows="farneback", between_fuse=fuse, between_flow_splat=False)
         _, _, dev = tr._between.draw(np.random.default_rng(3))
         rng = np.random.default_rng(3)
         pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
@@ -736,6 +736,28 @@ def _between_splat(scene, rt, tmp_path):
         validate_config(TrainConfig(between_splat="nearest"), "cfg.toml")
 
 
+def _between_push(scene, rt, tmp_path):
+    """between_push: with between_flow_splat the drawn target pushes the frames once along the
+    estimators' flows fused by consistency ("fused") or along each estimator's own ("each");
+    other names are refused by key."""
+    from endowave_cl.train.between import between_target
+    from endowave_cl.train.config import validate_config
+    for mode, other_mode in (("fused", "each"), ("each", "fused")):
+        tr = _trainer(scene, rt, tmp_path / mode, iterations=0, between_prob=1.0, between_flow_splat=True,
+                      between_splat="reverse", between_push=mode, between_flows="farneback")
+        assert tr._between.extra_flows                       # more than one estimator to fuse
+        _, _, dev = tr._between.draw(np.random.default_rng(3))
+        rng = np.random.default_rng(3)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        s = float(rng.uniform(0.0, 1.0))
+        want, other = (between_target(scene, pair, s, extra=tr._between.extra(pair), **_target_kw(tr, push=m))[0]
+                       for m in (mode, other_mode))
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        assert not np.allclose(want, other, atol=1e-4)
+    with pytest.raises(EndowaveError, match="between_push"):
+        validate_config(TrainConfig(between_push="all"), "cfg.toml")
+
+
 def _drawn_with_model_motion(tr, rt, weight):
     """An in-between target drawn (seeded) with the model's rendered motion at this weight, and
     what it drew: (target image, pair, s, motion(camera, t, t_to))."""
@@ -784,6 +806,43 @@ def _between_model_splat(scene, rt, tmp_path):
         want, other = (splatted, backward) if splat else (backward, splatted)
         np.testing.assert_allclose(got, want, atol=1e-6)
         assert not np.allclose(got, other, atol=1e-4)
+
+
+def _between_motion_refresh(scene, rt, tmp_path):
+    """between_motion_refresh: the model's motion at a pair's two frames is rendered over the whole
+    pair, scaled to the step's fraction s and kept for that many steps; 0 renders it to s every time."""
+    from endowave_cl.render import render
+    from endowave_cl.train.between import between_target
+    calls = []
+
+    def motion(camera, t, t_to):
+        calls.append((t, t_to))
+        return tr.rendered_motion(render(rt, tr.params, camera, t, t_to))
+    tr = _trainer(scene, rt, tmp_path / "refresh", iterations=0, between_prob=1.0, densify_until=0,
+                  between_model=1.0, between_model_splat=True, between_motion_refresh=10)
+    b = tr._between
+    _, _, dev = b.draw(np.random.default_rng(3), motion, 1.0, step=5)
+    rng = np.random.default_rng(3)
+    index = int(rng.integers(len(b.pairs)))
+    pair, s = b.pairs[index], float(rng.uniform(0.0, 1.0))
+    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+    t = (1 - s) * f0.time + s * f1.time
+    assert calls[1:] == [(f0.time, f1.time), (f1.time, f0.time)]      # after the step's own render
+    g0, g1 = motion(f0.camera, f0.time, f1.time), motion(f1.camera, f1.time, f0.time)
+    want = between_target(scene, pair, s, model_disp=motion(f0.camera, t, f0.time), model_weight=1.0,
+                          model_fwd=(np.float32(s) * g0, np.float32(1 - s) * g1), **_target_kw(tr))[0]
+    np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+    del calls[:]
+    b._pair_motion(index, motion, 14)          # kept: 9 steps old
+    assert calls == []
+    b._pair_motion(index, motion, 15)          # 10 steps old: rendered again
+    assert calls == [(f0.time, f1.time), (f1.time, f0.time)]
+    off = _trainer(scene, rt, tmp_path / "off", iterations=0, between_prob=1.0, densify_until=0,
+                   between_model=1.0, between_model_splat=True, between_motion_refresh=0)
+    del calls[:]
+    tr = off
+    off._between.draw(np.random.default_rng(3), motion, 1.0, step=5)
+    assert calls[1:] == [(f0.time, t), (f1.time, t)]                   # rendered to s itself
 
 
 CHECKS = {
@@ -846,6 +905,8 @@ CHECKS = {
     "between_model_splat": _between_model_splat,
     "between_flow_splat": _between_flow_splat,
     "between_splat": _between_splat,
+    "between_motion_refresh": _between_motion_refresh,
+    "between_push": _between_push,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),

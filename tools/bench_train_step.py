@@ -10,7 +10,8 @@ the parts, its own read-backs and the NaN guard), and of as many Trainer.train_s
 (an in-between step, with the host's part of it: drawing and warping its target), and of as many
 in-between steps as they run after densify_until (with between_model: the forward read back and
 the model's motion warped into the target; with between_model_splat two more renders at the pair's
-frames and the frames splatted forward along them).
+frames and the frames splatted forward along them; with between_motion_refresh that motion is
+timed both rendered afresh, as in the step that first draws a pair, and kept from an earlier step).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
                                      [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels [--top N]]
@@ -204,19 +205,37 @@ def main(argv=None):
                 # in the frames moved along the model's motion (between_model): a third read-back
                 # and two more warps on the host; with between_model_splat also two renders at the
                 # pair's frames, their read-backs and two forward splats
-                step0, late = tr.step, []
-                for i in range(args.warmup + args.runs):
-                    tr.step = max(step0, tr.cfg.densify_until)
-                    rt.queue.finish()
-                    t0 = time.perf_counter()
-                    tr.train_step_between()
-                    rt.queue.finish()
-                    if i >= args.warmup:
-                        late.append(time.perf_counter() - t0)
-                tr.step = step0
-                print(f"seconds per Trainer.train_step_between after densify_until (between_model "
-                      f"{tr.cfg.between_model:g}, between_model_splat {tr.cfg.between_model_splat}): "
-                      f"{statistics.median(late):.3f}")
+                # (with between_motion_refresh every pair's motion is rendered afresh here, as in
+                # the first late step that draws the pair, then timed again while it is kept)
+                step0 = tr.step
+                kept = [False, True] if tr.cfg.between_model_splat and tr.cfg.between_motion_refresh > 0 else [False]
+                for keep in kept:
+                    late = []
+                    if keep:
+                        for index in range(len(tr._between.pairs)):
+                            tr._between._pair_motion(index, _motion_renderer(tr), tr.cfg.densify_until)
+                    for i in range(args.warmup + args.runs):
+                        tr.step = max(step0, tr.cfg.densify_until)
+                        if not keep:
+                            tr._between._motion.clear()
+                        rt.queue.finish()
+                        t0 = time.perf_counter()
+                        tr.train_step_between()
+                        rt.queue.finish()
+                        if i >= args.warmup:
+                            late.append(time.perf_counter() - t0)
+                    tr.step = step0
+                    what = ("" if len(kept) == 1 else
+                            ", the pair's motion kept" if keep else ", the pair's motion rendered afresh")
+                    print(f"seconds per Trainer.train_step_between after densify_until (between_model "
+                          f"{tr.cfg.between_model:g}, between_model_splat {tr.cfg.between_model_splat}"
+                          f"{what}): {statistics.median(late):.3f}")
+
+
+def _motion_renderer(tr):
+    """(camera, t, t_to) -> the trainer's model's rendered motion [H, W, 2] (Trainer.rendered_motion)."""
+    from endowave_cl.render import render
+    return lambda camera, t, t_to: tr.rendered_motion(render(tr.rt, tr.params, camera, t, t_to))
 
 
 if __name__ == "__main__":

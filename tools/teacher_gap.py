@@ -56,7 +56,8 @@ def main(argv=None) -> int:
         pair = pairs.get(i0)
         target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler,
                                  extra_pairs(others, pair), fuse=run.cfg.between_fuse,
-                                 flow_splat=run.cfg.between_flow_splat, splat=run.cfg.between_splat)[0]
+                                 flow_splat=run.cfg.between_flow_splat, splat=run.cfg.between_splat,
+                                 push=run.cfg.between_push)[0]
                   if pair is not None and pair.dst == i1 else None)
         r = [psnr(model, f.image), psnr(dis, f.image),
              np.nan if target is None else psnr(target, f.image),

@@ -14,7 +14,7 @@ sets of frames and scored against the real frame (PSNR, dB):
   The triplets are a check that uses no test frame.
 
 Each variant changes in-between keys of the run's config (between_fuse, between_flow_splat,
-between_splat, between_model, between_model_splat, between_sampler, between_two_flow,
+between_splat, between_push, between_model, between_model_splat, between_sampler, between_two_flow,
 between_flows); the model itself is the run's.  Prints the model's own render too.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-KEYS = ("between_fuse", "between_flow_splat", "between_splat", "between_model", "between_model_splat",
+KEYS = ("between_fuse", "between_flow_splat", "between_splat", "between_push", "between_model", "between_model_splat",
         "between_sampler", "between_two_flow", "between_flows")
 
 
@@ -88,7 +88,7 @@ def main(argv=None) -> int:
                 image = between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler, extra,
                                        disp, c.between_model, c.between_fuse,
                                        fwd if c.between_model_splat else None, c.between_flow_splat,
-                                       c.between_splat)[0]
+                                       c.between_splat, c.between_push)[0]
                 scores[name].append(psnr(np.clip(image, 0, 1), f.image))
         print(f"{set_name} ({len(frames)} frames: {' '.join(map(str, frames))})")
         for name, v in scores.items():

@@ -55,7 +55,12 @@ land there says where q's colour comes from, and the frame is sampled there with
 densely each reaches q, so that what one frame cannot see comes from the other.  With
 ``between_flow_splat`` every flow hypothesis is pushed forward the same way (s F_kk' from the
 first frame, (1 - s) F_k'k from the second) instead of sampled backward, its backward warps
-filling the pixels that neither frame reaches (docs/QUALITY.md finding 21).
+filling the pixels that neither frame reaches (docs/QUALITY.md finding 21).  Pushing every
+estimator's frames costs a host splat per estimator and frame, and where the estimators agree it
+pushes the same thing three times: ``between_push = "fused"`` pushes the frames once, along the
+estimators' flows fused per pixel by how well each returns to its start (``consistent_flows``:
+forward-backward error), which is as good a teacher on the pulling frames at a third of the splats
+(docs/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per pair.
 """
 from __future__ import annotations
 
@@ -80,6 +85,12 @@ FUSE_MODES = ("agree", "mean")
 # how a forward splat makes its image (between_splat): the splatted displacement reversed and the
 # frame sampled along it, or the colours shared bilinearly
 SPLAT_MODES = ("reverse", "colour")
+# which flows between_flow_splat pushes forward (between_push): one flow per direction fused from
+# the estimators per pixel by forward-backward consistency, or every estimator's own
+PUSH_MODES = ("fused", "each")
+# consistent_flows: the forward-backward error (px) at which an estimator's weight falls by a
+# factor e against the most consistent one's
+PUSH_TAU = 1.0
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
@@ -137,7 +148,8 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
                    extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
                    model_weight: float = 0.0, fuse: str = "agree",
                    model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                   flow_splat: bool = False, splat: str = "colour") -> Tuple[np.ndarray, np.ndarray, float]:
+                   flow_splat: bool = False, splat: str = "colour", push: str = "each",
+                   pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
@@ -153,9 +165,13 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     warps along model_disp filling what neither reaches.  flow_splat: every flow hypothesis pushes
     its frames forward too (s F_kk' from the first frame, (1 - s) F_k'k from the second), its
     backward warps filling the rest.  splat (SPLAT_MODES): how a forward splat makes its image,
-    "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation)."""
+    "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation).  push (PUSH_MODES):
+    with flow_splat, "each" pushes every hypothesis's frames along its own flows, "fused" pushes
+    them once along consistent_flows of all the hypotheses (pushed_flows: those flows when they
+    were made already), the fused backward prediction filling the rest."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat)
+    image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat,
+                                     push, pushed_flows)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
@@ -172,7 +188,8 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
 
 
 def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra: Sequence[object], fuse: str,
-                     flow_splat: bool, splat: str) -> Tuple[np.ndarray, np.ndarray]:
+                     flow_splat: bool, splat: str, push: str = "each",
+                     pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]): between_target's flow half, the frame at s predicted from
     the pair's flows alone (its arguments)."""
 
@@ -189,6 +206,16 @@ def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra
     sources = (pair, *extra)
     pool = _host_pool()
     hyps = [(w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)) for w0, w1, ok in pool.map(backward, sources)]
+    if flow_splat and push == "fused":
+        if len(hyps) == 1:
+            image, weight = hyps[0][3], hyps[0][2]
+        else:
+            image, weight = fused_interpolation([(w0, w1) for w0, w1, _, _ in hyps], s,
+                                                [ok for _, _, ok, _ in hyps], fuse)
+        flow, flow_bw = consistent_flows(sources) if pushed_flows is None else pushed_flows
+        image = _splat(splat, f0, f1, np.float32(s) * flow, np.float32(1.0 - s) * flow_bw, s, sampler,
+                       image, image, image)[0]
+        return image, weight
     if flow_splat:
         fwd = [(f0, s * np.asarray(p.flow, np.float32)) for p in sources]
         bwd = [(f1, (1.0 - s) * np.asarray(p.flow_bw, np.float32)) for p in sources]
@@ -203,6 +230,28 @@ def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra
     if len(warps) == 1:
         return blends[0], valid[0]
     return fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
+
+
+def consistent_flows(sources: Sequence[object]) -> Tuple[np.ndarray, np.ndarray]:
+    """(flow, flow_bw) [H, W, 2] each: the flows of sources (FlowPairs of the same two frames from
+    several estimators) fused per pixel, each direction weighted by its forward-backward error
+    e_h(p) = |F_h(p) + B_h(p + F_h(p))| (bilinear; B_h the estimator's flow the other way) as
+    exp(-(e_h - min_h e_h) / PUSH_TAU), normalised.  Where one estimator's flow returns to its
+    start and the others' do not, its flow is taken; where they agree, their mean."""
+    if len(sources) == 1:
+        return np.asarray(sources[0].flow, np.float32), np.asarray(sources[0].flow_bw, np.float32)
+    fw = [np.asarray(p.flow, np.float32) for p in sources]
+    bw = [np.asarray(p.flow_bw, np.float32) for p in sources]
+    out = []
+    for there, back in ((fw, bw), (bw, fw)):
+        err = np.stack([np.linalg.norm(f + sample_displaced(b, f), axis=-1) for f, b in zip(there, back)])  # [K, H, W]
+        wt = np.exp((err.min(0) - err) * np.float32(1.0 / PUSH_TAU))
+        wt /= wt.sum(0)
+        fused = np.zeros_like(there[0])
+        for wk, f in zip(wt, there):
+            fused += wk[..., None] * f
+        out.append(fused)
+    return out[0], out[1]
 
 
 @functools.lru_cache(maxsize=1)
@@ -245,8 +294,17 @@ def splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: 
         n, d = splat_forward(f.image, np.asarray(g, np.float32), _source_weight(f))
         num = a * n if num is None else num + a * n
         den = a * d if den is None else den + a * d
+    return _divide_where(num, den, fill)
+
+
+def _divide_where(num: np.ndarray, den: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """[H, W, C]: num / den where den ([H, W]) > SPLAT_MIN_WEIGHT, fill elsewhere.  OpenCV's
+    per-element division and masked copy (numpy's where= over a broadcast channel axis is several
+    times slower); cv2.divide gives 0 where den is 0, and those pixels keep fill."""
     out = np.array(fill, np.float32, copy=True)
-    np.divide(num, den[..., None], out=out, where=(den > SPLAT_MIN_WEIGHT)[..., None])
+    num = np.asarray(num, np.float32)
+    den3 = cv2.merge([np.asarray(den, np.float32)] * num.shape[2]) if num.ndim == 3 else den
+    cv2.copyTo(cv2.divide(num, den3), (den > SPLAT_MIN_WEIGHT).view(np.uint8), out)
     return out
 
 
@@ -258,8 +316,7 @@ def reversed_splat(image: np.ndarray, g: np.ndarray, sampler: str, source_weight
     reach: the splatted weight (0 where nothing lands, and pushed is the image sampled at q)."""
     g = np.asarray(g, np.float32)
     num, den = splat_forward(-g, g, source_weight)                                    # [H, W, 2], [H, W]
-    back = np.zeros_like(g)
-    np.divide(num, den[..., None], out=back, where=(den > SPLAT_MIN_WEIGHT)[..., None])
+    back = _divide_where(num, den, np.zeros_like(g))
     return sample_displaced(image, back, sampler), den
 
 
@@ -277,14 +334,14 @@ def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: floa
     total = np.zeros(fill.shape[:2], np.float32)
     out_pushed = []
     for a, other, (w, reach) in ((1.0 - s, fill0, pushed[0]), (s, fill1, pushed[1])):
-        ok = reach > SPLAT_MIN_WEIGHT
+        ok = (reach > SPLAT_MIN_WEIGHT).view(np.uint8)                                   # [H, W]
         wt = np.where(ok, np.float32(a) * reach, np.float32(0))                          # [H, W]
-        image += wt[..., None] * w
+        image += cv2.merge((wt, wt, wt)) * w
         total += wt
-        out_pushed.append(np.where(ok[..., None], w, other).astype(np.float32))
-    out = np.array(fill, np.float32, copy=True)
-    np.divide(image, total[..., None], out=out, where=(total > SPLAT_MIN_WEIGHT)[..., None])
-    return out, out_pushed[0], out_pushed[1]
+        o = np.array(other, np.float32, copy=True)
+        cv2.copyTo(np.asarray(w, np.float32), ok, o)
+        out_pushed.append(o)
+    return _divide_where(image, total, fill), out_pushed[0], out_pushed[1]
 
 
 def _warp_pair(f0, f1, d0, d1, sampler: str):
@@ -310,13 +367,22 @@ class BetweenSampler:
     its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
     into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
     prediction splats the frames forward (between_target's model_fwd); flow_splat and splat: as
-    between_target's."""
+    between_target's, and push: the fused flows (consistent_flows) are made once per pair.
+    motion_refresh > 0: the motion the model renders at a pair's two frames is
+    rendered over the whole pair (G0 from the first frame to the second, G1 back) and kept for
+    that many steps; the motion to s is s G0 and (1 - s) G1 (the means move linearly in time, so
+    up to perspective: a few thousandths of a pixel on the pulling frames, docs/QUALITY.md finding
+    22).  0: both are rendered to s in every step that needs them."""
 
     def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
                  extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
-                 model_splat: bool = False, flow_splat: bool = False, splat: str = "colour"):
+                 model_splat: bool = False, flow_splat: bool = False, splat: str = "colour",
+                 motion_refresh: int = 0, push: str = "each"):
         self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
-        self.model_splat, self.flow_splat, self.splat = model_splat, flow_splat, splat
+        self.model_splat, self.flow_splat, self.splat, self.push = model_splat, flow_splat, splat, push
+        self._pushed: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}   # pair index -> consistent_flows
+        self.motion_refresh = int(motion_refresh)
+        self._motion: Dict[int, Tuple[int, np.ndarray, np.ndarray]] = {}   # pair index -> (step, G0, G1)
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
         self.pair_prob = None                                                   # [P] or uniform
@@ -333,26 +399,49 @@ class BetweenSampler:
     def __bool__(self) -> bool:
         return bool(self.pairs)
 
-    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0):
+    def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0, step: int = 0):
         """(camera, time, device targets) of one in-between step, or None where nothing is
         supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
         from t to t_to, blended into the target with model_weight (between_target); it is called
-        first at the step's own time, then (model_splat) at the pair's two frames' times."""
+        first at the step's own time, then (model_splat) at the pair's two frames' times, unless
+        their motion rendered within motion_refresh steps before ``step`` is kept."""
         from .device_losses import prepare_targets
         if self.pair_prob is None:
-            pair = self.pairs[int(rng.integers(len(self.pairs)))]
+            index = int(rng.integers(len(self.pairs)))
         else:
-            pair = self.pairs[int(rng.choice(len(self.pairs), p=self.pair_prob))]
+            index = int(rng.choice(len(self.pairs), p=self.pair_prob))
+        pair = self.pairs[index]
         s = float(rng.uniform(0.0, 1.0))
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
         disp = fwd = None
         if model_flow is not None and model_weight > 0.0:
             t = pair_time(self.scene, pair, s)
             disp = model_flow(f0.camera, t, float(f0.time))
-            if self.model_splat:
+            if self.model_splat and self.motion_refresh > 0:
+                g0, g1 = self._pair_motion(index, model_flow, step)
+                fwd = (np.float32(s) * g0, np.float32(1.0 - s) * g1)
+            elif self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
+        pushed = None
+        if self.flow_splat and self.push == "fused":
+            if index not in self._pushed:
+                self._pushed[index] = consistent_flows([pair, *self.extra(pair)])
+            pushed = self._pushed[index]
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat)
+                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat,
+                                          self.push, pushed)
         if not weight.any():
             return None
         return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+
+    def _pair_motion(self, index: int, model_flow, step: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(G0, G1) [H, W, 2] each: the motion the model renders at pair index's first frame to its
+        second and back, rendered again once older than motion_refresh steps."""
+        kept = self._motion.get(index)
+        if kept is None or step - kept[0] >= self.motion_refresh:
+            pair = self.pairs[index]
+            f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
+            t0, t1 = float(f0.time), float(f1.time)
+            kept = (step, model_flow(f0.camera, t0, t1), model_flow(f1.camera, t1, t0))
+            self._motion[index] = kept
+        return kept[1], kept[2]

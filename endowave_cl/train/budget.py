@@ -52,8 +52,8 @@ class BudgetPlan:
         margin = GROWTH_MARGIN if step < cfg.densify_until else 1.0
         total = max(step + 1, step + int(margin * left / max(seconds_per_step, 1e-6)))
         r = total / self.base["iterations"]
-        for f in SCALED_FIELDS:
-            setattr(cfg, f, max(1, int(round(self.base[f] * r))))
+        for f in SCALED_FIELDS:   # a key at 0 (off) stays 0
+            setattr(cfg, f, max(1, int(round(self.base[f] * r))) if self.base[f] > 0 else 0)
         cfg.iterations = total
         self.planned = total
         return total

@@ -41,7 +41,8 @@ SH_DEGREE_ONE_VIEWPOINT = 1
 # step numbers of the BASE_ITERATIONS-step schedule and stretch with it, as --minutes stretches them.
 BASE_ITERATIONS = 6000
 STEPS_PER_TRAINING_FRAME = 109   # 6000 steps over the 55 training frames of the pulling sequence
-SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps")
+SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps",
+                 "between_motion_refresh")
 
 
 @dataclass
@@ -99,14 +100,11 @@ class TrainConfig:
     between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
                                     # pixel's by how well its two warps agree, "mean" averages them
                                     # (docs/QUALITY.md findings 20, 21)
-    between_flow_splat: bool = False  # each flow hypothesis pushes the two frames forward along
-                                    # the flow (a forward splat, as between_splat says) instead of
-                                    # sampling them backward, its backward warps filling the pixels
-                                    # that no source pixel reaches.  With between_splat = "reverse"
-                                    # and between_fuse = "mean": +0.04-0.09 dB on pulling, +0.13-0.22
-                                    # on the synthetic scenes, 26 % more training time on 2 CPU
-                                    # cores (eight host splats per in-between step), so off by
-                                    # default (docs/QUALITY.md finding 21)
+    between_flow_splat: bool = True  # the flows push the two frames forward (a forward splat, as
+                                    # between_splat says; which flows: between_push) instead of
+                                    # sampling them backward, the backward prediction filling the
+                                    # pixels that no source pixel reaches (docs/QUALITY.md findings
+                                    # 21, 22)
     between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
@@ -117,7 +115,18 @@ class TrainConfig:
                                     # their own times (two more renders per such step) instead of
                                     # sampling them along the motion it renders at s (train/
                                     # between.py splat_interpolation; docs/QUALITY.md finding 20)
-    between_splat: str = "colour"   # how a forward splat makes its image (train/between.py
+    between_push: str = "fused"     # which flows between_flow_splat pushes forward (train/between.py
+                                    # PUSH_MODES): "fused" one flow per direction, fused per pixel
+                                    # from the estimators by forward-backward consistency (two host
+                                    # splats); "each" every estimator's own (six; docs/QUALITY.md
+                                    # finding 22)
+    between_motion_refresh: int = 500  # with between_model_splat: the motion the model renders at
+                                    # a pair's two frames is rendered over the whole pair, scaled to
+                                    # each step's time and kept this many steps (two renders fewer
+                                    # in most late in-between steps); 0: rendered to the step's time
+                                    # in every such step (train/between.py BetweenSampler;
+                                    # docs/QUALITY.md finding 22)
+    between_splat: str = "reverse"  # how a forward splat makes its image (train/between.py
                                     # SPLAT_MODES): "colour" shares the colours bilinearly among
                                     # the four pixels where they land, which blurs at fractional
                                     # offsets; "reverse" splats the displacement, reverses it and
@@ -317,7 +326,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
@@ -377,10 +386,13 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
-    from .between import FUSE_MODES, SPLAT_MODES
+    from .between import FUSE_MODES, PUSH_MODES, SPLAT_MODES
     if cfg.between_fuse not in FUSE_MODES:
         raise EndowaveError(f"{source}: key 'between_fuse' must be one of {', '.join(FUSE_MODES)}, "
                             f"got {cfg.between_fuse!r}")
+    if cfg.between_push not in PUSH_MODES:
+        raise EndowaveError(f"{source}: key 'between_push' must be one of {', '.join(PUSH_MODES)}, "
+                            f"got {cfg.between_push!r}")
     if cfg.between_splat not in SPLAT_MODES:
         raise EndowaveError(f"{source}: key 'between_splat' must be one of {', '.join(SPLAT_MODES)}, "
                             f"got {cfg.between_splat!r}")

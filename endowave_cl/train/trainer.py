@@ -120,7 +120,8 @@ class Trainer:
         self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
                                        cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
                                        cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat,
-                                       cfg.between_flow_splat, cfg.between_splat)
+                                       cfg.between_flow_splat, cfg.between_splat, cfg.between_motion_refresh,
+                                       cfg.between_push)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
@@ -228,7 +229,7 @@ class Trainer:
             return self.rendered_motion(out)
 
         use_model = self.cfg.between_model > 0 and self.step >= self.cfg.densify_until
-        drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model)
+        drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model, self.step)
         if drawn is None:
             return None
         camera, t, dev = drawn
