@@ -191,7 +191,7 @@ def _flow_method(scene, rt, tmp_path, monkeypatch):
     monkeypatch.setattr(flow_module, "flow_for_scene", lambda sc, method, progress: seen.append(method) or {})
     _trainer(scene, rt, tmp_path / "a", use_flow=True)
     _trainer(scene, rt, tmp_path / "b", use_flow=True, flow_method="tvl1")
-    assert seen == ["dis", "tvl1"]
+    assert seen == ["dis_fine", "tvl1"]
 
 
 def _sh_degree(scene, rt, tmp_path):
@@ -657,7 +657,7 @@ def _between_flows(scene, rt, tmp_path):
     from endowave_cl.train.between import between_target
     from endowave_cl.train.config import TrainConfig, validate_config
     tr = _trainer(scene, rt, tmp_path / "fused", iterations=0, between_prob=1.0,
-                  between_flows="farneback, dis")          # flow_method (dis) itself is not repeated
+                  between_flows="farneback, dis_fine")     # flow_method (dis_fine) itself is not repeated
     assert len(tr._between.extra_flows) == 1
     _, _, dev = tr._between.draw(np.random.default_rng(3))
     rng = np.random.default_rng(3)

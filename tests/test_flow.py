@@ -302,7 +302,7 @@ def test_cli_flow(small, tmp_path, capsys):
     args = ["flow", str(small), "--cache-dir", str(tmp_path), "--no-progress"]
     assert cli_main(args) == 0
     out = capsys.readouterr().out
-    assert "4 pairs (dis), computed" in out and "end-point error vs gt_flow" in out
+    assert "4 pairs (dis_fine), computed" in out and "end-point error vs gt_flow" in out   # flow_method's
     assert cli_main(args) == 0
     assert "reused from cache" in capsys.readouterr().out
     assert cli_main(["flow", str(tmp_path / "missing"), "--no-progress"]) == 1

@@ -1,9 +1,9 @@
 """Precompute pseudo ground-truth optical flow for a scene (EndoNeRF layout).
 
 Flow between consecutive training frames, both directions, with a forward-backward consistency
-mask (tool pixels excluded when the scene has masks), computed with OpenCV (DIS by default;
-DIS fine, Farneback, DeepFlow and TV-L1 are slower; the config key between_flows fuses several
-for the in-between targets) and cached outside the scene
+mask (tool pixels excluded when the scene has masks), computed with OpenCV (by default the
+training's flow_method, DIS fine; DIS is 4x faster, Farneback, DeepFlow and TV-L1 are slower; the
+config key between_flows fuses several for the in-between targets) and cached outside the scene
 (--cache-dir, else $ENDOWAVE_CL_CACHE/flow, else ~/.cache/endowave-cl/flow); training reuses the
 cache while the frames are unchanged.  If SCENE/flow/ holds user flow (.npy / .flo, see
 docs/DATA.md), it is checked and used instead.  For a synthetic scene (gt_flow/) the end-point
@@ -16,8 +16,11 @@ import time
 
 def add_arguments(parser):
     from ..data.flow import METHODS
+    from ..train.config import TrainConfig
+    default = TrainConfig().flow_method
     parser.add_argument("scene", help="scene folder in the EndoNeRF layout")
-    parser.add_argument("--method", choices=METHODS, default="dis", help="flow estimator (default dis)")
+    parser.add_argument("--method", choices=METHODS, default=default,
+                        help=f"flow estimator (default {default}, the training's flow_method)")
     parser.add_argument("--downscale", type=float, default=1.0,
                         help="image downscale factor, as used for training (default 1)")
     parser.add_argument("--cache-dir", default=None, help="cache root (default ~/.cache/endowave-cl/flow)")

@@ -91,7 +91,7 @@ class TrainConfig:
                                     # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
                                     # and teaches a blurred frame; docs/QUALITY.md finding 10)
-    between_flows: str = "dis_fine,farneback"  # further flow estimators (comma-separated,
+    between_flows: str = "dis,farneback"  # further flow estimators (comma-separated,
                                     # data/flow.py METHODS) whose interpolations are fused with
                                     # flow_method's in the in-between target, per pixel by how well
                                     # each one's two warps agree (train/between.py
@@ -136,7 +136,10 @@ class TrainConfig:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
                                     # (ALIVE_PER_PIXEL alive per pixel at a time)
-    flow_method: str = "dis"        # pseudo ground-truth optical flow (OpenCV): DIS is the fast one
+    flow_method: str = "dis_fine"   # pseudo ground-truth optical flow (OpenCV, data/flow.py METHODS):
+                                    # the flow loss's target and the initial velocities; DIS down to
+                                    # its finest level, closer to exact flow than DIS's default preset
+                                    # (docs/QUALITY.md finding 23); "dis" is 4x faster
     sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
                                     # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
                                     # 1 when every training frame is seen from one camera centre (a
