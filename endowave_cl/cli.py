@@ -95,6 +95,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     from .errors import EndowaveError
+    from .host_memory import keep_freed_memory
+    keep_freed_memory()          # large host temporaries reuse heap memory (host_memory.py)
     from .runtime import KernelBuildError, OpenCLUnavailable
     old_sigterm = None
     if threading.current_thread() is threading.main_thread():

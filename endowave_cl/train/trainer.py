@@ -60,7 +60,9 @@ def late_factor(cfg, step: int, final: float) -> float:
 class Trainer:
     def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True,
                  progress: bool = False):
+        from ..host_memory import keep_freed_memory
         from .run_folder import RunSession
+        keep_freed_memory()      # the steps' large host temporaries reuse heap memory (host_memory.py)
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self._flow_progress = progress    # a progress bar while flows not in the cache are computed
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
