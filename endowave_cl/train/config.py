@@ -27,8 +27,8 @@ MAX_GAUSSIANS_PER_PIXEL = 2.0
 # With the same motion, a sequence twice as long has half as many alive at any time under the same
 # cap.  So the default cap is also at least this many Gaussians alive per pixel at a time, given
 # the initial Gaussians' mean coverage (TrainConfig.resolve_cap_for_lifetimes; docs/QUALITY.md
-# finding 13): longer sequences, and faster or less regular motion, get a higher cap.
-ALIVE_PER_PIXEL = 0.25
+# findings 13, 24): longer sequences, and faster or less regular motion, get a higher cap.
+ALIVE_PER_PIXEL = 0.4
 MAX_GAUSSIANS_PER_PIXEL_LIMIT = 16.0   # the raised cap's bound: memory (about 1 KB per Gaussian with
                                        # its gradient and Adam's moments) for very long sequences
 # what sh_degree = -1 becomes (TrainConfig.resolve_sh_degree): 3DGS's degree where the training
