@@ -11,7 +11,6 @@ mean and spread over the seeds, the machine and its load.  --json writes everyth
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -21,6 +20,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from endowave_cl.errors import EndowaveError  # noqa: E402
 
 
 def _machine() -> str:
@@ -88,6 +90,25 @@ def main(argv=None) -> int:
     print(f"scene {a.scene}, downscale {a.downscale}, settings {overrides or 'defaults'}"
           + (f", {a.minutes:g} min budget" if a.minutes else ""))
     rows = []
+    try:
+        _run_seeds(a, overrides, out_root, rows)
+    except (KeyboardInterrupt, EndowaveError) as e:   # Ctrl-C, SIGTERM (a saved checkpoint) or bad input
+        print(f"quality_run: {'error: ' if isinstance(e, EndowaveError) else ''}{e or 'interrupted'}"
+              + (f"; the {len(rows)} finished seed(s) are in {a.json}" if a.json and rows else ""), file=sys.stderr)
+        _write_json(a, overrides, rows)
+        return 1 if isinstance(e, EndowaveError) else 130
+    _write_json(a, overrides, rows)
+    return 0
+
+
+def _write_json(a, overrides, rows):
+    if a.json and rows:
+        from endowave_cl.atomic import write_json_atomic
+        write_json_atomic(a.json, {"machine": _machine(), "scene": a.scene, "downscale": a.downscale,
+                                   "settings": overrides, "minutes": a.minutes, "runs": rows})
+
+
+def _run_seeds(a, overrides, out_root, rows):
     for seed in a.seeds:
         t0 = time.perf_counter()
         m = run_one(a.scene, a.downscale, seed, overrides, a.minutes, out_root)
@@ -117,11 +138,6 @@ def main(argv=None) -> int:
             if mu is not None:
                 parts.append(f"{label} {mu:.3f} +- {sd:.3f}")
         print(f"mean +- std over seeds {a.seeds}: " + "; ".join(parts))
-    if a.json:
-        from endowave_cl.atomic import write_json_atomic
-        write_json_atomic(a.json, {"machine": _machine(), "scene": a.scene, "downscale": a.downscale,
-                                   "settings": overrides, "minutes": a.minutes, "runs": rows})
-    return 0
 
 
 if __name__ == "__main__":
