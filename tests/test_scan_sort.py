@@ -88,7 +88,7 @@ def test_exclusive_scan_tiny(rt):
 
 # --- the sort's pieces --------------------------------------------------------------------------
 
-@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.CPU_CONFIG, R.GPU_CONFIG])
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.CPU_CONFIG, R.GPU_CONFIG, R.GPU_SMALL_CONFIG])
 def test_radix_histogram_and_scatter_pass(rt, cfg):
     """One pass's kernels, each against its reference."""
     rng = np.random.default_rng(11)
@@ -126,7 +126,7 @@ def test_sort_matches_stable_argsort(rt, n):
     _sort_and_check(rt, _keys(rng, n), num_bits=64)
 
 
-@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.GPU_CONFIG])
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.GPU_CONFIG, R.GPU_SMALL_CONFIG])
 @pytest.mark.parametrize("n", [1, 11, 24, 25, 97, 3000])
 def test_sort_block_boundaries_any_config(rt, cfg, n):
     """Sizes around multiples of the block size (wg * items) for several digit widths."""
@@ -176,6 +176,23 @@ def test_sort_passes():
     assert R.sort_passes(0, 8) == 0 and R.sort_passes(100, 8) == 8
 
 
+def test_default_config_by_device_and_size():
+    """CPUs get CPU_CONFIG at any size; GPUs the 6-bit configuration below GPU_SMALL_MAX keys and
+    the 4-bit one from there (and when the size is not given), each cut to the device's
+    work-group and local-memory limits."""
+    from types import SimpleNamespace
+    cpu = SimpleNamespace(caps=SimpleNamespace(simt=None, max_work_group_size=4096, local_mem_size=1 << 19))
+    gpu = SimpleNamespace(caps=SimpleNamespace(simt=32, max_work_group_size=1024, local_mem_size=48 << 10))
+    small_gpu = SimpleNamespace(caps=SimpleNamespace(simt=32, max_work_group_size=256, local_mem_size=8 << 10))
+    assert R.default_config(cpu, 10) == R.default_config(cpu, 10 ** 8) == R.CPU_CONFIG
+    assert R.default_config(gpu, R.GPU_SMALL_MAX - 1) == R.GPU_SMALL_CONFIG
+    assert R.default_config(gpu, R.GPU_SMALL_MAX) == R.default_config(gpu) == R.GPU_CONFIG
+    for n in (100, 10 ** 8):   # 4 bytes per [digit, work-item] entry in half of 8 KiB
+        cfg = R.default_config(small_gpu, n)
+        assert cfg.radix_bits == R.default_config(gpu, n).radix_bits
+        assert 4 * (1 << cfg.radix_bits) * cfg.wg <= 4 << 10 and cfg.wg * 2 * 4 * (1 << cfg.radix_bits) > 4 << 10
+
+
 def test_sort_values_are_arbitrary_payload(rt):
     rng = np.random.default_rng(9)
     n = 7777
@@ -202,7 +219,7 @@ def test_sort_ten_million(rt):
 
 
 @pytest.mark.oclgrind
-@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_CONFIG, TINY_CONFIGS[0], TINY_CONFIGS[3]])
+@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_CONFIG, R.GPU_SMALL_CONFIG, TINY_CONFIGS[0], TINY_CONFIGS[3]])
 def test_sort_tiny(rt, cfg):
     rng = np.random.default_rng(1)
     n = small(1000, 1000)

@@ -7,6 +7,9 @@ Prints the device, the sizes and the median wall time (ms, after warm-up, queue 
   * bin_and_sort end to end for 100k Gaussians with random rects of 1-3 tiles per side on a
     40 x 32 tile grid (640 x 512 pixels).
 
+Each size uses the device's default configuration for that many keys (ops/sort.py default_config:
+on a GPU it depends on the count); the flags lay their values over it.
+
     python tools/bench_sort.py [--device SPEC] [--repeat 7] [--sizes 1000000 4000000]
                                [--radix-bits 8 --wg 16 --items-max 16384 --groups-per-cu 8]
 """
@@ -77,13 +80,20 @@ def main(argv=None):
 
     rt = get_runtime(a.device)
     q = rt.queue
-    base = default_config(rt)
-    cfg = SortConfig(
-        radix_bits=a.radix_bits or base.radix_bits, wg=a.wg or base.wg,
-        items_min=a.items_min or base.items_min, items_max=a.items_max or base.items_max,
-        groups_per_cu=a.groups_per_cu or base.groups_per_cu)
+    flags = (a.radix_bits, a.wg, a.items_min, a.items_max, a.groups_per_cu)
+
+    def config_for(n):
+        """The device's default for n keys (the sort's own choice) with the flags given laid over it."""
+        base = default_config(rt, n)
+        if not any(flags):
+            return base
+        return SortConfig(radix_bits=a.radix_bits or base.radix_bits, wg=a.wg or base.wg,
+                          items_min=a.items_min or base.items_min, items_max=a.items_max or base.items_max,
+                          groups_per_cu=a.groups_per_cu or base.groups_per_cu)
+
     print(f"device: {rt.describe()}")
-    print(f"sort config: {cfg}; median of {a.repeat} runs after 2 warm-up runs")
+    print(f"sort config: {'the flags over ' if any(flags) else ''}the device's default for each size; "
+          f"median of {a.repeat} runs after 2 warm-up runs")
     print(f"host load average (1 min) at start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     rng = np.random.default_rng(0)
 
@@ -92,13 +102,15 @@ def main(argv=None):
         vals = np.arange(n, dtype=np.int32)
         dk, dv = cla.to_device(q, keys), cla.to_device(q, vals)
 
+        cfg = config_for(n)
+
         def run():
             radix_sort_pairs(rt, dk, dv, SORT_BITS, cfg)
             q.finish()
 
         ms = median_ms(run, a.repeat)
         line = (f"radix_sort_pairs n={n:>9,d} bits={SORT_BITS}: {ms:8.2f} ms "
-                f"({n / ms / 1e3:6.1f} Mkeys/s)")
+                f"({n / ms / 1e3:6.1f} Mkeys/s; {cfg})")
         if not a.no_numpy:
             def np_sort():
                 order = np.argsort(keys, kind="stable")
@@ -111,6 +123,7 @@ def main(argv=None):
         rect, depth, radius, tt = random_scene(rng, n_g, tiles_x, tiles_y)
         dev = [cla.to_device(q, x) for x in (rect, depth, radius, tt)]
         m = int(tt.sum())
+        cfg = config_for(m)
 
         def run_bin():
             bin_and_sort(rt, *dev, tiles_x * 16, tiles_y * 16, sort_config=cfg)
@@ -118,7 +131,7 @@ def main(argv=None):
 
         ms = median_ms(run_bin, a.repeat)
         print(f"bin_and_sort {n_g:,d} Gaussians, 1-3 tiles per side, {tiles_x}x{tiles_y} tiles "
-              f"({tiles_x * 16}x{tiles_y * 16} px), M={m:,d} entries: {ms:8.2f} ms")
+              f"({tiles_x * 16}x{tiles_y * 16} px), M={m:,d} entries: {ms:8.2f} ms ({cfg})")
 
 
 if __name__ == "__main__":

@@ -47,22 +47,34 @@ class SortConfig:
 # fastest, wg 4 and 16 no better), long serial chunks, a handful of blocks per core.
 CPU_CONFIG = SortConfig(radix_bits=8, wg=1, items_min=16, items_max=1 << 14, groups_per_cu=4)
 # GPU: narrow digits so that the [digit, work-item] table fits local memory with many
-# work-items; short chunks so that there are thousands of work-groups.  On an H100 its
-# 9 passes take 0.6 ms of kernel time for 340k pairs; the wall time is in the launches (docs/PERFORMANCE.md "GPU").
+# work-items; short chunks so that there are thousands of work-groups.  Its 11 passes for 44
+# bits are the fastest from a few million keys on (docs/PERFORMANCE.md "GPU": an H200 sorts 4M
+# keys in 2.4 ms).  Below GPU_SMALL_MAX keys a sort's wall time is mostly its launches, and
+# GPU_SMALL_CONFIG's 6-bit digits (8 passes, longer chunks) sort 340k-1M keys in 1.4-1.6 ms
+# against 1.9-3.2 ms.
 GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_per_cu=64)
+GPU_SMALL_CONFIG = SortConfig(radix_bits=6, wg=64, items_min=8, items_max=512, groups_per_cu=16)
+GPU_SMALL_MAX = 1 << 21
 
 
-def default_config(rt) -> SortConfig:
-    """CPU_CONFIG on devices without a reported SIMT width (DeviceCaps); else GPU_CONFIG with its
-    work-group size cut to what the device allows and its [digit, work-item] table to half the
-    local memory."""
+def _fit_local_memory(cfg: SortConfig, caps) -> SortConfig:
+    """cfg with its work-group cut to what the device allows and its [digit, work-item] table to
+    half the local memory."""
+    wg = cfg.wg
+    while wg > 1 and (wg > caps.max_work_group_size or 4 * (1 << cfg.radix_bits) * wg > caps.local_mem_size // 2):
+        wg //= 2
+    return cfg if wg == cfg.wg else replace(cfg, wg=wg)
+
+
+def default_config(rt, n: Optional[int] = None) -> SortConfig:
+    """CPU_CONFIG on devices without a reported SIMT width (DeviceCaps); else GPU_CONFIG, or
+    GPU_SMALL_CONFIG for fewer than GPU_SMALL_MAX keys (n None: the large one), fitted to the
+    device's work-group and local memory limits."""
     caps = getattr(rt, "caps", None)
     if caps is None or not caps.simt:
         return CPU_CONFIG
-    wg = GPU_CONFIG.wg
-    while wg > 1 and (wg > caps.max_work_group_size or 4 * (1 << GPU_CONFIG.radix_bits) * wg > caps.local_mem_size // 2):
-        wg //= 2
-    return GPU_CONFIG if wg == GPU_CONFIG.wg else replace(GPU_CONFIG, wg=wg)
+    small = n is not None and n < GPU_SMALL_MAX
+    return _fit_local_memory(GPU_SMALL_CONFIG if small else GPU_CONFIG, caps)
 
 
 def sort_passes(num_bits: int, radix_bits: int) -> int:
@@ -80,7 +92,7 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     n = int(keys.size)
     if int(values.size) != n:
         raise ValueError(f"keys [{n}] and values [{values.size}] differ in length")
-    cfg = config or default_config(rt)
+    cfg = config or default_config(rt, n)
     passes = sort_passes(num_bits, cfg.radix_bits)
     if n == 0 or passes == 0:
         return keys.copy(), values.copy()
