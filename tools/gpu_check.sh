@@ -155,8 +155,10 @@ print("device:", rt.describe())
 print("caps:", rt.caps)
 print("build options every kernel gets:", " ".join(rt._options([])[2:]))
 from endowave_cl.ops.rasterize import raster_choice
-from endowave_cl.ops.sort import default_config
-print("rasterizer:", raster_choice(rt, 6).describe(), "| sort:", default_config(rt))
+from endowave_cl.ops.sort import GPU_SMALL_MAX, default_config
+small, large = default_config(rt, GPU_SMALL_MAX - 1), default_config(rt)
+print("rasterizer:", raster_choice(rt, 6).describe(), "| sort:", large if small == large else
+      f"{small} below {GPU_SMALL_MAX} keys, {large} from there")
 EOF
 
 if [ $SETUP_ONLY -eq 1 ]; then
