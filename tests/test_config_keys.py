@@ -188,10 +188,26 @@ def _init_velocity(scene, rt, tmp_path):
 def _flow_method(scene, rt, tmp_path, monkeypatch):
     import endowave_cl.data.flow as flow_module
     seen = []
-    monkeypatch.setattr(flow_module, "flow_for_scene", lambda sc, method, progress: seen.append(method) or {})
+    monkeypatch.setattr(flow_module, "flow_for_scene", lambda sc, method, progress, max_pixels=0: seen.append(method) or {})
     _trainer(scene, rt, tmp_path / "a", use_flow=True)
     _trainer(scene, rt, tmp_path / "b", use_flow=True, flow_method="tvl1")
     assert seen == ["dis_fine", "tvl1"]
+
+
+def _flow_max_pixels(scene, rt, tmp_path, monkeypatch):
+    """Every estimator's flow (the pseudo ground truth and the in-between target's) is asked for
+    at the configured pixel budget (data/flow.py estimation_size does the rest)."""
+    import endowave_cl.data.flow as flow_module
+    real = flow_module.flow_for_scene
+    seen = []
+
+    def spy(sc, method, progress, max_pixels=0):
+        seen.append((method, max_pixels))
+        return real(sc, method=method, progress=False, max_pixels=max_pixels)
+    monkeypatch.setattr(flow_module, "flow_for_scene", spy)
+    _trainer(scene, rt, tmp_path / "a", use_flow=True, between_prob=0.5, between_flows="dis")
+    _trainer(scene, rt, tmp_path / "b", use_flow=True, between_prob=0.5, between_flows="dis", flow_max_pixels=600)
+    assert seen == [("dis_fine", 0), ("dis", 0), ("dis_fine", 600), ("dis", 600)]
 
 
 def _sh_degree(scene, rt, tmp_path):
@@ -859,6 +875,7 @@ CHECKS = {
     "init_velocity": _init_velocity,
     "max_gaussians": _densify_effect(_max_gaussians),
     "flow_method": _flow_method,
+    "flow_max_pixels": _flow_max_pixels,
     "sh_degree": _sh_degree,
     "temporal_freqs": _fixed("temporal_freqs", 2),
     "lr_position_init": _lr_position_init,

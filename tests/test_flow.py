@@ -217,6 +217,46 @@ def test_cache_is_reused_and_invalidated(small, tmp_path, monkeypatch):
     assert not flow_for_scene(scene, progress=False, cache_dir=tmp_path).computed
 
 
+def test_estimation_size_keeps_the_aspect_under_the_pixel_budget():
+    assert flow_mod.estimation_size(640, 512, 0) == (640, 512)
+    assert flow_mod.estimation_size(640, 512, 640 * 512) == (640, 512)
+    assert flow_mod.estimation_size(640, 512, 320 * 256) == (320, 256)
+    w, h = flow_mod.estimation_size(1280, 1024, 100_000)
+    assert w * h <= 100_000 and abs(w / h - 1.25) < 0.01 and (w + 1) * (h + 1) > 100_000
+
+
+def test_flow_estimated_on_smaller_frames_is_scaled_to_the_frame(demo, tmp_path, monkeypatch):
+    """max_pixels: the estimator sees area-averaged frames of the budget's size, and the flow comes
+    back at the frame's size in the frame's pixels, as computing it by hand gives; the cache keeps
+    the two apart."""
+    seen = []
+    real = flow_mod._estimate
+
+    def spy(est, a, b):
+        seen.append(a.shape)
+        return real(est, a, b)
+    monkeypatch.setattr(flow_mod, "_estimate", spy)
+    scene = load_scene(demo)                                           # 160x128
+    full = flow_for_scene(scene, progress=False, cache_dir=tmp_path)
+    half = flow_for_scene(scene, progress=False, cache_dir=tmp_path, max_pixels=80 * 64)
+    assert half.computed and half.cache_path != full.cache_path
+    assert set(seen[:len(seen) // 2]) == {(128, 160)} and set(seen[len(seen) // 2:]) == {(64, 80)}
+    k = next(iter(half))
+    p = half[k]
+    grey = [cv2.resize(flow_mod.to_grey8(scene.frames[i].image), (80, 64), interpolation=cv2.INTER_AREA)
+            for i in (p.src, p.dst)]
+    small_flow = flow_mod._make_estimator("dis").calc(grey[0], grey[1], None)
+    by_hand = cv2.resize(small_flow, (160, 128), interpolation=cv2.INTER_LINEAR) * 2.0
+    assert p.flow.shape == (128, 160, 2) and p.valid.shape == (128, 160)
+    np.testing.assert_allclose(p.flow, by_hand, atol=1e-5)
+    # a coarser estimate of the same ~1 px motion stays close to the full-size one
+    assert np.abs(p.flow - full[k].flow)[p.valid > 0].mean() < 0.5
+    # the budget at or above the frame's size is the frame's own estimate, from the same cache entry
+    seen.clear()
+    same = flow_for_scene(scene, progress=False, cache_dir=tmp_path, max_pixels=160 * 128)
+    assert not same.computed and same.cache_path == full.cache_path and not seen
+
+
 def test_default_cache_root_is_outside_the_scene(small, tmp_path, monkeypatch):
     monkeypatch.setenv("ENDOWAVE_CL_CACHE", str(tmp_path / "c"))
     r = flow_for_scene(load_scene(small), progress=False)

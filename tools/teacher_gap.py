@@ -42,8 +42,9 @@ def main(argv=None) -> int:
     rt = get_runtime()
     params = upload(rt, run.gaussians)
     from endowave_cl.train.config import between_flow_methods
-    pairs = {p.src: p for p in dict(flow_for_scene(sc, method=run.cfg.flow_method, progress=False)).values()}
-    others = [dict(flow_for_scene(sc, method=m, progress=False)) for m in between_flow_methods(run.cfg)]
+    pairs = {p.src: p for p in dict(flow_for_scene(sc, method=run.cfg.flow_method, progress=False,
+                                                        max_pixels=run.cfg.flow_max_pixels)).values()}
+    others = [dict(flow_for_scene(sc, method=m, progress=False, max_pixels=run.cfg.flow_max_pixels)) for m in between_flow_methods(run.cfg)]
     print(f"{a.run}: step {run.step}, {len(run.gaussians)} Gaussians; load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"{'frame':>5} {'model':>7} {'DIS':>7} {'target':>7} {'model~DIS':>10} {'model~target':>13}  (dB)")

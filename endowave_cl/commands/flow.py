@@ -23,6 +23,9 @@ def add_arguments(parser):
                         help=f"flow estimator (default {default}, the training's flow_method)")
     parser.add_argument("--downscale", type=float, default=1.0,
                         help="image downscale factor, as used for training (default 1)")
+    parser.add_argument("--max-pixels", type=int, default=TrainConfig().flow_max_pixels,
+                        help="estimate on frames area-averaged to at most this many pixels and scale the "
+                             "flow back up (default: the training's flow_max_pixels; 0: the frame's size)")
     parser.add_argument("--cache-dir", default=None, help="cache root (default ~/.cache/endowave-cl/flow)")
     parser.add_argument("--no-cache", action="store_true", help="compute without reading or writing the cache")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -47,14 +50,18 @@ def gt_epe(scene, result):
 def run(args) -> int:
     import numpy as np
     from ..data import flow_for_scene, load_scene
+    from ..errors import EndowaveError
     from .train import check_downscale_arg, check_downscaled_size
     check_downscale_arg(args.downscale)
     check_downscaled_size(args.scene, args.downscale)
+    if args.max_pixels < 0:
+        raise EndowaveError(f"--max-pixels must be at least 0, got {args.max_pixels}")
     scene = load_scene(args.scene, downscale=args.downscale)
     print(f"{args.scene}: {scene.summary()}")
     start = time.perf_counter()
     result = flow_for_scene(scene, method=args.method, cache=not args.no_cache,
-                            progress=not args.no_progress, cache_dir=args.cache_dir)
+                            progress=not args.no_progress, cache_dir=args.cache_dir,
+                            max_pixels=args.max_pixels)
     took = time.perf_counter() - start
     valid = np.mean([p.valid.mean() for p in result.values()]) if result else 0.0
     how = "computed" if result.computed else ("read" if result.method == "user" else "reused from cache")

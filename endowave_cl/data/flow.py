@@ -195,11 +195,39 @@ def default_cache_root() -> Path:
     return base / "endowave-cl" / "flow"
 
 
-def cache_key(scene, method: str, pairs) -> str:
+def estimation_size(width: int, height: int, max_pixels: int = 0):
+    """(w, h) at which the estimators see frames of width x height: the frame's own size, or with
+    ``max_pixels`` > 0 the largest size of the same aspect with at most that many pixels."""
+    if max_pixels <= 0 or width * height <= max_pixels:
+        return width, height
+    f = (max_pixels / float(width * height)) ** 0.5
+    return max(8, int(width * f)), max(8, int(height * f))
+
+
+def _grey_at(image: np.ndarray, size) -> np.ndarray:
+    """What the estimators see: 8-bit grey, area-averaged to ``size`` (w, h) when smaller."""
+    g = to_grey8(image)
+    return g if (g.shape[1], g.shape[0]) == tuple(size) else cv2.resize(g, size, interpolation=cv2.INTER_AREA)
+
+
+def _to_frame_size(flow: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[h, w, 2] flow estimated on smaller frames -> [height, width, 2] in the frame's pixels."""
+    h, w = flow.shape[:2]
+    if (w, h) == (width, height):
+        return flow
+    out = cv2.resize(flow, (width, height), interpolation=cv2.INTER_LINEAR)
+    return (out * np.array([width / w, height / h], np.float32)).astype(np.float32)
+
+
+def cache_key(scene, method: str, pairs, max_pixels: int = 0) -> str:
     """SHA-256 over everything the result depends on (see the module docstring)."""
     h = hashlib.sha256()
-    h.update(json.dumps({"version": CACHE_VERSION, "method": method, "opencv": cv2.__version__,
-                         "size": [scene.width, scene.height], "pairs": pairs}).encode())
+    meta = {"version": CACHE_VERSION, "method": method, "opencv": cv2.__version__,
+            "size": [scene.width, scene.height], "pairs": pairs}
+    work = estimation_size(scene.width, scene.height, max_pixels)
+    if work != (scene.width, scene.height):
+        meta["estimated_at"] = list(work)
+    h.update(json.dumps(meta).encode())
     used = sorted({i for p in pairs for i in p})
     for i in used:
         fr = scene.frames[i]
@@ -278,7 +306,7 @@ def _user_flow(scene, folder: Path, pairs):
 
 
 def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: bool = True,
-                   cache_dir=None, use_user_flow: bool = True) -> SceneFlow:
+                   cache_dir=None, use_user_flow: bool = True, max_pixels: int = 0) -> SceneFlow:
     """Pseudo ground-truth flow for every consecutive pair of training frames.
 
     Returns ``{k: FlowPair}`` (a ``SceneFlow`` dict) with one entry per training frame k that has a
@@ -286,6 +314,9 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
     "deepflow" or "tvl1" (METHODS; the last two are the slowest).
     ``cache``: reuse / write the on-disk cache (module docstring);
     ``cache_dir`` overrides its root.  ``use_user_flow``: take ``<scene>/flow/`` when it has files.
+    ``max_pixels`` > 0: frames larger than this many pixels are area-averaged to that size for the
+    estimator (``estimation_size``) and the flow is scaled back up to the frame's size; the
+    consistency masks are computed at the frame's size.
     """
     if method not in METHODS:
         raise DataError(f"unknown flow method {method!r} (choose from {', '.join(METHODS)})")
@@ -296,7 +327,7 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
 
     entry = None
     if cache:
-        entry = (Path(cache_dir) if cache_dir is not None else default_cache_root()) / cache_key(scene, method, pairs)
+        entry = (Path(cache_dir) if cache_dir is not None else default_cache_root()) / cache_key(scene, method, pairs, max_pixels)
         hit = _load_cached(entry, pairs)
         if hit is not None:
             result = SceneFlow(hit)
@@ -305,16 +336,19 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
 
     from ..progress import progress as progress_bar
     estimator = _make_estimator(method)
-    grey = {i: to_grey8(scene.frames[i].image) for i in sorted({i for p in pairs for i in p})}
+    work = estimation_size(scene.width, scene.height, max_pixels)
+    grey = {i: _grey_at(scene.frames[i].image, work) for i in sorted({i for p in pairs for i in p})}
     result = SceneFlow()
+    W, H = scene.width, scene.height
     for k, k2 in progress_bar(pairs, desc=f"flow ({method})", unit="pair", disable=not progress):
-        fw = np.asarray(_estimate(estimator, grey[k], grey[k2]), np.float32)
-        bw = np.asarray(_estimate(estimator, grey[k2], grey[k]), np.float32)
+        fw = _to_frame_size(np.asarray(_estimate(estimator, grey[k], grey[k2]), np.float32), W, H)
+        bw = _to_frame_size(np.asarray(_estimate(estimator, grey[k2], grey[k]), np.float32), W, H)
         m0, m1 = scene.frames[k].mask, scene.frames[k2].mask
         result[k] = FlowPair(k, k2, fw, valid_mask(fw, bw, m0, m1), bw, valid_mask(bw, fw, m1, m0))
     result.method, result.computed = method, True
     if cache:
         _store(entry, result, {"scene": str(scene.path), "method": method, "pairs": pairs,
-                               "size": [scene.width, scene.height], "version": CACHE_VERSION})
+                               "size": [scene.width, scene.height], "estimated_at": list(work),
+                               "version": CACHE_VERSION})
         result.cache_path = entry
     return result

@@ -140,6 +140,9 @@ class TrainConfig:
                                     # the flow loss's target and the initial velocities; DIS down to
                                     # its finest level, closer to exact flow than DIS's default preset
                                     # (docs/QUALITY.md finding 23); "dis" is 4x faster
+    flow_max_pixels: int = 0        # > 0: the estimators see frames larger than this many pixels
+                                    # area-averaged to this size, and their flows are scaled back
+                                    # up (data/flow.py estimation_size); 0: the training size
     sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
                                     # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
                                     # 1 when every training frame is seen from one camera centre (a
@@ -340,7 +343,7 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
-    "lambda_flow_gaussian": _NON_NEGATIVE, "sh_degree": (-1, 3, True, True),
+    "lambda_flow_gaussian": _NON_NEGATIVE, "sh_degree": (-1, 3, True, True), "flow_max_pixels": _NON_NEGATIVE,
     # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
     "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,
     "wavelet_weight_lh": _NON_NEGATIVE, "wavelet_weight_hl": _NON_NEGATIVE, "wavelet_weight_hh": _NON_NEGATIVE,

@@ -167,8 +167,14 @@ class Trainer:
         c = self.cfg
         if not (c.use_flow or c.init_velocity or c.between_prob > 0):
             return {}
-        from ..data.flow import flow_for_scene
-        return dict(flow_for_scene(self.scene, method=c.flow_method, progress=self._flow_progress))
+        from ..data.flow import estimation_size, flow_for_scene
+        flows = flow_for_scene(self.scene, method=c.flow_method, progress=self._flow_progress,
+                               max_pixels=c.flow_max_pixels)
+        work = estimation_size(self.scene.width, self.scene.height, c.flow_max_pixels)
+        if getattr(flows, "method", "") != "user" and work != (self.scene.width, self.scene.height):
+            self.log(f"flows estimated at {work[0]}x{work[1]} (flow_max_pixels {c.flow_max_pixels}) and "
+                     f"scaled to the {self.scene.width}x{self.scene.height} frames")
+        return dict(flows)
 
     def _load_between_flows(self) -> List[Dict[int, object]]:
         """The between_flows estimators' flows of the training pairs (cached on disk), for the
@@ -179,7 +185,8 @@ class Trainer:
             return []
         out = []
         for m in between_flow_methods(self.cfg):
-            f = flow_for_scene(self.scene, method=m, progress=self._flow_progress)
+            f = flow_for_scene(self.scene, method=m, progress=self._flow_progress,
+                               max_pixels=self.cfg.flow_max_pixels)
             if f.method == "user":
                 return []
             out.append(dict(f))
