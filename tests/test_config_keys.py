@@ -205,9 +205,10 @@ def _flow_max_pixels(scene, rt, tmp_path, monkeypatch):
         seen.append((method, max_pixels))
         return real(sc, method=method, progress=False, max_pixels=max_pixels)
     monkeypatch.setattr(flow_module, "flow_for_scene", spy)
+    from endowave_cl.train.config import FLOW_MAX_PIXELS
     _trainer(scene, rt, tmp_path / "a", use_flow=True, between_prob=0.5, between_flows="dis")
     _trainer(scene, rt, tmp_path / "b", use_flow=True, between_prob=0.5, between_flows="dis", flow_max_pixels=600)
-    assert seen == [("dis_fine", 0), ("dis", 0), ("dis_fine", 600), ("dis", 600)]
+    assert seen == [("dis_fine", FLOW_MAX_PIXELS), ("dis", FLOW_MAX_PIXELS), ("dis_fine", 600), ("dis", 600)]
 
 
 def _sh_degree(scene, rt, tmp_path):

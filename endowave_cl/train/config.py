@@ -41,6 +41,10 @@ SH_DEGREE_ONE_VIEWPOINT = 1
 # step numbers of the BASE_ITERATIONS-step schedule and stretch with it, as --minutes stretches them.
 BASE_ITERATIONS = 6000
 STEPS_PER_TRAINING_FRAME = 109   # 6000 steps over the 55 training frames of the pulling sequence
+# The flow estimators see at most this many pixels (flow_max_pixels' default, data/flow.py
+# estimation_size): their patches and windows have fixed sizes in pixels, and on the 640x512 pulling
+# frames flows estimated at 320x256 and scaled up are the better teacher (docs/QUALITY.md finding 26)
+FLOW_MAX_PIXELS = 320 * 256
 SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps",
                  "between_motion_refresh")
 
@@ -140,9 +144,10 @@ class TrainConfig:
                                     # the flow loss's target and the initial velocities; DIS down to
                                     # its finest level, closer to exact flow than DIS's default preset
                                     # (docs/QUALITY.md finding 23); "dis" is 4x faster
-    flow_max_pixels: int = 0        # > 0: the estimators see frames larger than this many pixels
-                                    # area-averaged to this size, and their flows are scaled back
-                                    # up (data/flow.py estimation_size); 0: the training size
+    flow_max_pixels: int = FLOW_MAX_PIXELS  # the estimators see frames larger than this many
+                                    # pixels area-averaged to at most this many, and their flows are
+                                    # scaled back up (data/flow.py estimation_size; 320x256 for
+                                    # the 640x512 EndoNeRF frames); 0: the training size
     sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
                                     # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
                                     # 1 when every training frame is seen from one camera centre (a
