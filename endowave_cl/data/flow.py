@@ -279,8 +279,7 @@ def _fit_to_scene(flow, path, scene):
     sx, sy = scene.width / w, scene.height / h
     if abs(sx - sy) > 0.02 * max(sx, sy):
         raise DataError(f"{path}: flow is {w}x{h}, which does not scale to the {scene.width}x{scene.height} frames")
-    out = cv2.resize(flow, (scene.width, scene.height), interpolation=cv2.INTER_LINEAR)
-    return (out * np.array([sx, sy], np.float32)).astype(np.float32)
+    return _to_frame_size(flow, scene.width, scene.height)
 
 
 def _user_flow(scene, folder: Path, pairs):
