@@ -114,7 +114,8 @@ def stage_options(manifest, scene, stage: str) -> dict:
     this, and a re-run with other options does the stage again."""
     from .manifest import setting
     if stage == "flow":
-        return {"method": setting(scene, "flow_method"), "downscale": setting(scene, "downscale")}
+        return {"method": setting(scene, "flow_method"), "downscale": setting(scene, "downscale"),
+                "max_pixels": setting(scene, "flow_max_pixels")}
     if stage == "train":
         return {"settings": dict(scene.settings)}
     if stage == "eval":
@@ -138,7 +139,8 @@ def command_argv(manifest, scene, stage: str, run_dir) -> List[str]:
     device = ["--device", dev] if dev else []
     if stage == "flow":
         return ["flow", src, "--method", setting(scene, "flow_method"),
-                "--downscale", _value_text(float(setting(scene, "downscale"))), "--no-progress"]
+                "--downscale", _value_text(float(setting(scene, "downscale"))),
+                "--max-pixels", str(int(setting(scene, "flow_max_pixels"))), "--no-progress"]
     if stage == "train":
         sets = [a for k, v in scene.settings.items() for a in ("--set", f"{k}={_value_text(v)}")]
         return ["train", src, "--out", run, *sets, *device]
