@@ -125,8 +125,11 @@ def test_serves_prints_address_and_stops_on_ctrl_c(tiny_run, tmp_path):
     shutil.copytree(tiny_run, tmp_path / "runs" / "tiny")
     port = _free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # started as from a terminal, with Ctrl-C's default action: a pytest-xdist worker ignores SIGINT,
+    # and a child inherits that (Python then installs no KeyboardInterrupt handler)
     p = subprocess.Popen([sys.executable, "-m", "endowave_cl", "view", "--demo", "--port", str(port)],
-                         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         lines = []
         deadline = time.time() + 240
