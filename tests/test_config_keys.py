@@ -382,6 +382,10 @@ def _pair(n=4, scale=math.log(0.005), opacity=0.5):
 
 
 def _densify(g, cfg, grad=1e-3, radius=1.0, prune_big=False):
+    from dataclasses import replace
+    from endowave_cl.train.config import DENSIFY_GRAD_THRESHOLD
+    if cfg.densify_grad_threshold <= 0:      # TrainConfig()'s 0, as resolve_density makes it for small frames
+        cfg = replace(cfg, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)
     info = {}
     n = len(g)
     out, _ = densify_and_prune(g, np.full(n, grad), np.ones(n), np.full(n, radius), cfg, 1.0,

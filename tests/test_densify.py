@@ -6,11 +6,11 @@ import math
 import numpy as np
 
 from endowave_cl.gaussians import Gaussians, covariance_4d
-from endowave_cl.train.config import TrainConfig
+from endowave_cl.train.config import DENSIFY_GRAD_THRESHOLD, TrainConfig
 from endowave_cl.train.densify import densify_and_prune, logit, moment_source_index, sigmoid
 from endowave_cl.train.motion import motion_of
 
-CFG = TrainConfig()
+CFG = TrainConfig(densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)   # as resolve_density makes it up to 320x256
 EXTENT = 1.0
 SMALL = math.log(0.005)   # below percent_dense * extent = 0.01: clone
 LARGE = math.log(0.05)    # above it: split (and below prune_world_size * extent = 0.1)
@@ -81,10 +81,10 @@ def test_world_size_prune_and_empty_scene():
 def test_max_gaussians_budget_takes_largest_gradients():
     g = _scene(5)
     grad = np.array([1, 5, 3, 4, 2]) * CFG.densify_grad_threshold
-    cfg = TrainConfig(max_gaussians=7)  # room for 2 clones
+    cfg = TrainConfig(max_gaussians=7, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)  # room for 2 clones
     out, src = densify_and_prune(g, grad, np.ones(5), np.zeros(5), cfg, EXTENT)
     np.testing.assert_array_equal(src, [0, 1, 2, 3, 4, 1, 3])
-    cfg = TrainConfig(max_gaussians=5)  # full: nothing added
+    cfg = TrainConfig(max_gaussians=5, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)  # full: nothing added
     out, src = densify_and_prune(g, grad, np.ones(5), np.zeros(5), cfg, EXTENT)
     np.testing.assert_array_equal(src, np.arange(5))
 
@@ -101,7 +101,7 @@ def test_split_children_keep_the_parents_moments_and_motion():
     g.means[:] = [0.1, -0.2, 3.0, 0.4]
     cond_p, st_p, v_p = motion_of(covariance_4d(g))
     assert np.abs(v_p).max() > 1e-3                       # the parent moves
-    cfg = TrainConfig(prune_opacity=0.0)
+    cfg = TrainConfig(prune_opacity=0.0, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)
     out, src = densify_and_prune(g, np.ones(1), np.ones(1), np.zeros(1), cfg, EXTENT)
     assert len(out) == 2 and np.all(src == 0)
     cond_c, st_c, v_c = motion_of(covariance_4d(out))

@@ -158,7 +158,8 @@ def run(args) -> int:
     if auto_sh and trainer.step == 0:
         why = " (one camera centre)" if scene.one_viewpoint() else " (moving cameras)"
     print(f"training {plan}, losses: {', '.join(losses)}; {len(trainer.params['means'])} Gaussians "
-          f"(density control up to {cfg.max_gaussians}), colour SH degree {cfg.sh_degree}{why}")
+          f"(density control up to {cfg.max_gaussians}, gradient threshold {cfg.densify_grad_threshold:.3g}), "
+          f"colour SH degree {cfg.sh_degree}{why}")
     m = trainer.train(progress=not args.quiet)
     print(f"final test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
           f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s; run saved in {out}")

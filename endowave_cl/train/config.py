@@ -6,6 +6,7 @@ field names below (an optional ``[train]`` table is accepted too).
 """
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Dict, Mapping, Optional
@@ -45,6 +46,14 @@ STEPS_PER_TRAINING_FRAME = 109   # 6000 steps over the 55 training frames of the
 # estimation_size): their patches and windows have fixed sizes in pixels, and on the 640x512 pulling
 # frames flows estimated at 320x256 and scaled up are the better teacher (docs/QUALITY.md finding 26)
 FLOW_MAX_PIXELS = 320 * 256
+# densify_grad_threshold = 0 resolves to DENSIFY_GRAD_THRESHOLD (3DGS's) for frames of up to
+# DENSIFY_GRAD_PIXELS pixels, and to DENSIFY_GRAD_THRESHOLD x sqrt(DENSIFY_GRAD_PIXELS / pixels) for
+# larger ones (TrainConfig.resolve_density).  The gradient it is compared with is in NDC units: for a
+# Gaussian of a given size in pixels it falls as 1 / frame height, and the initial Gaussians are one
+# per pixel at every size, so the same threshold densifies larger frames less (docs/QUALITY.md
+# finding 27).
+DENSIFY_GRAD_THRESHOLD = 2e-4
+DENSIFY_GRAD_PIXELS = 320 * 256
 SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps",
                  "between_motion_refresh")
 
@@ -183,7 +192,8 @@ class TrainConfig:
     densify_until: int = 3000           # half of training, as 3DGS (15000 of 30000); like every
                                         # schedule key a step number: --iterations does not scale
                                         # them (--minutes and iterations = 0 do)
-    densify_grad_threshold: float = 2e-4  # mean |d loss / d mean2d| in NDC units
+    densify_grad_threshold: float = 0.0  # mean |d loss / d mean2d| in NDC units; 0: 2e-4, less for
+                                        # frames larger than 320x256 (DENSIFY_GRAD_THRESHOLD)
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
     split_scale_divisor: float = 1.6    # children's spatial scales = parent's / 1.6
@@ -244,11 +254,14 @@ class TrainConfig:
 
     def resolve_density(self, width: int, height: int) -> None:
         """Replace init_points = 0 and max_gaussians = 0 by their per-pixel defaults for width x
-        height frames (the run's config.json then records the numbers used)."""
+        height frames, and densify_grad_threshold = 0 by densify_threshold_for(width, height) (the
+        run's config.json then records the numbers used)."""
         if self.max_gaussians <= 0:
             self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
         if self.init_points <= 0:
             self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
+        if self.densify_grad_threshold <= 0:
+            self.densify_grad_threshold = densify_threshold_for(width, height)
 
     def resolve_cap_for_lifetimes(self, width: int, height: int, coverage: float) -> None:
         """Raise the per-pixel default cap (max_gaussians = 0 given, resolve_density applied) to
@@ -364,6 +377,12 @@ def _range_text(low, high, low_in, high_in) -> str:
     if high is None:
         return f"{'at least' if low_in else '>'} {low:g}"
     return f"in {'[' if low_in else '('}{low:g}, {high:g}{']' if high_in else ')'}"
+
+
+def densify_threshold_for(width: int, height: int) -> float:
+    """The default densify_grad_threshold for width x height frames (DENSIFY_GRAD_THRESHOLD)."""
+    pixels = max(1, int(width) * int(height))
+    return DENSIFY_GRAD_THRESHOLD * min(1.0, math.sqrt(DENSIFY_GRAD_PIXELS / pixels))
 
 
 def between_flow_methods(cfg: TrainConfig):

@@ -5,7 +5,8 @@ steps; the trainer uploads the result and rebuilds the Adam moments with ``sourc
 
 Rules (3DGS defaults from TrainConfig):
 - A Gaussian is a candidate when its mean screen-space gradient grad_accum / count (NDC units,
-  accumulated by rasterize_bwd) is >= densify_grad_threshold.
+  accumulated by rasterize_bwd) is >= densify_grad_threshold (resolved per frame size:
+  config.py DENSIFY_GRAD_THRESHOLD).
 - A Gaussian's spatial size is the largest std of its conditional 3D Gaussian (the same at every
   time; train/motion.py ``spatial_size``), not of its 4D principal axes: a moving Gaussian's
   longest axis runs along its path through space-time.
@@ -112,6 +113,8 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     max_scale = np.full(N, np.inf)
     max_scale[sane] = spatial_size(cov[sane])                                  # [N]
 
+    if not cfg.densify_grad_threshold > 0:
+        raise ValueError("densify_grad_threshold is not resolved (TrainConfig.resolve_density)")
     candidate = (mean_grad >= cfg.densify_grad_threshold) & sane
     # max_gaussians 0 (not resolved per pixel, as the trainer does): no cap
     budget = max(0, int(cfg.max_gaussians) - N) if cfg.max_gaussians > 0 else 2 ** 62
