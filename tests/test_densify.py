@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -81,10 +82,10 @@ def test_world_size_prune_and_empty_scene():
 def test_max_gaussians_budget_takes_largest_gradients():
     g = _scene(5)
     grad = np.array([1, 5, 3, 4, 2]) * CFG.densify_grad_threshold
-    cfg = TrainConfig(max_gaussians=7, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)  # room for 2 clones
+    cfg = replace(CFG, max_gaussians=7)  # room for 2 clones
     out, src = densify_and_prune(g, grad, np.ones(5), np.zeros(5), cfg, EXTENT)
     np.testing.assert_array_equal(src, [0, 1, 2, 3, 4, 1, 3])
-    cfg = TrainConfig(max_gaussians=5, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)  # full: nothing added
+    cfg = replace(CFG, max_gaussians=5)  # full: nothing added
     out, src = densify_and_prune(g, grad, np.ones(5), np.zeros(5), cfg, EXTENT)
     np.testing.assert_array_equal(src, np.arange(5))
 
@@ -101,7 +102,7 @@ def test_split_children_keep_the_parents_moments_and_motion():
     g.means[:] = [0.1, -0.2, 3.0, 0.4]
     cond_p, st_p, v_p = motion_of(covariance_4d(g))
     assert np.abs(v_p).max() > 1e-3                       # the parent moves
-    cfg = TrainConfig(prune_opacity=0.0, densify_grad_threshold=DENSIFY_GRAD_THRESHOLD)
+    cfg = replace(CFG, prune_opacity=0.0)
     out, src = densify_and_prune(g, np.ones(1), np.ones(1), np.zeros(1), cfg, EXTENT)
     assert len(out) == 2 and np.all(src == 0)
     cond_c, st_c, v_c = motion_of(covariance_4d(out))

@@ -102,6 +102,8 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     extent: scene extent (world units); stats (optional dict) receives cloned / split / pruned
     counts and is_new [M] bool.
     """
+    if not cfg.densify_grad_threshold > 0:
+        raise ValueError("densify_grad_threshold is not resolved (TrainConfig.resolve_density)")
     N = len(g)
     grad_accum = np.asarray(grad_accum, np.float64).reshape(N)
     count = np.asarray(count, np.float64).reshape(N)
@@ -113,8 +115,6 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     max_scale = np.full(N, np.inf)
     max_scale[sane] = spatial_size(cov[sane])                                  # [N]
 
-    if not cfg.densify_grad_threshold > 0:
-        raise ValueError("densify_grad_threshold is not resolved (TrainConfig.resolve_density)")
     candidate = (mean_grad >= cfg.densify_grad_threshold) & sane
     # max_gaussians 0 (not resolved per pixel, as the trainer does): no cap
     budget = max(0, int(cfg.max_gaussians) - N) if cfg.max_gaussians > 0 else 2 ** 62
