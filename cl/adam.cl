@@ -17,6 +17,9 @@
  * values instead of decaying the moments and moving on momentum (gsplat's SelectiveAdam).  The
  * bias correction still counts every step.
  *
+ * adam_step_rows (below) updates only the rows a step selected (ops/select.py), their gradients
+ * given as compact arrays.
+ *
  * Bias-corrected Adam exactly as torch.optim.Adam (no weight decay, no amsgrad):
  *   m = b1 m + (1 - b1) g;  v = b2 v + (1 - b2) g^2
  *   p -= (lr / bc1) * m / (sqrt(v) / sqrt(bc2) + eps),  bc1 = 1 - b1^t, bc2 = 1 - b2^t
@@ -68,6 +71,22 @@ inline void adam_update8(__global float *p, const float8 gj, __global float *m, 
     store8(m + j0, frozen ? m0 : mj);
     store8(v + j0, frozen ? v0 : vj);
     store8(p + j0, frozen ? p0 : pj);
+}
+
+/* The same on 4 elements (adam_step_rows) */
+inline void adam_update4(__global float *p, const float4 gj, __global float *m, __global float *v,
+                         const int j0, const float4 lr, const float beta1, const float beta2,
+                         const float omb1, const float omb2, const float eps, const float inv_bc1,
+                         const float inv_sqrt_bc2) {
+    const int4 frozen = lr == 0.0f;
+    const float4 m0 = load4(m + j0), v0 = load4(v + j0), p0 = load4(p + j0);
+    const float4 mj = beta1 * m0 + omb1 * gj;
+    const float4 vj = beta2 * v0 + omb2 * gj * gj;
+    const float4 denom = sqrt4(vj) * inv_sqrt_bc2 + eps;
+    const float4 pj = p0 - (lr * inv_bc1) * mj / denom;
+    store4(m + j0, frozen ? m0 : mj);
+    store4(v + j0, frozen ? v0 : vj);
+    store4(p + j0, frozen ? p0 : pj);
 }
 
 /* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n (the group's last, shorter run element by
@@ -209,4 +228,69 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
 #endif
     GROUP_DISPATCH(6)
     /* past the last group: a padding work-item, nothing to do */
+}
+
+/* ---- Adam on selected rows (ops/adam.py DeviceAdam.step(rows=...)) ---------------------------
+ * The step ran on the parameters of the rows alive at its time, gathered into compact arrays
+ * (ops/select.py): work-item i updates row rows[i] of every group from row i of the compact
+ * gradients, in runs of 4 (adam_update4) and element by element after the last whole run (the
+ * operations of adam_update8 lane by lane).
+ * vis: the compact projected radius (0: the row is frozen, as skip_culled above).  row_k = 0: the
+ * group has no gradient (all its lrs are 0) and is left alone. */
+#define ROW_ARGS(k)                                                                     \
+    __global float *p##k, __global const float *g##k, __global float *m##k,             \
+    __global float *v##k, const int row##k, const int split##k, const float lra##k,     \
+    const float lrb##k
+
+#define LR4(c, split, lra, lrb)                                                         \
+    (float4)((c) < (split) ? (lra) : (lrb), (c) + 1 < (split) ? (lra) : (lrb),         \
+             (c) + 2 < (split) ? (lra) : (lrb), (c) + 3 < (split) ? (lra) : (lrb))
+
+#define ROW_UPDATE(k)                                                                   \
+    {                                                                                   \
+        int c = 0;                                                                      \
+        for (; c + 4 <= row##k; c += 4)                                                 \
+            adam_update4(p##k, load4(g##k + i * row##k + c), m##k, v##k, r * row##k + c, \
+                         LR4(c, split##k, lra##k, lrb##k), beta1, beta2, omb1, omb2, eps, \
+                         inv_bc1, inv_sqrt_bc2);                                        \
+        for (; c < row##k; ++c)                                                         \
+            adam_element(p##k, g##k[i * row##k + c], m##k, v##k, r * row##k + c,        \
+                         c < split##k ? lra##k : lrb##k, beta1, beta2, omb1, omb2, eps, \
+                         inv_bc1, inv_sqrt_bc2);                                        \
+    }
+
+__kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),
+                             ROW_ARGS(4), ROW_ARGS(5), ROW_ARGS(6),
+                             const float beta1, const float beta2,
+                             const float omb1, const float omb2, const float eps,
+                             const float inv_bc1, const float inv_sqrt_bc2,
+                             const int n_rows,
+                             __global const int *rows,      /* [L] rows of the full arrays */
+                             __global const int *visible,   /* [L] compact projected radius */
+                             const int skip_culled) {
+    const int i = get_global_id(0);
+    if (i >= n_rows || (skip_culled && visible[i] == 0)) return;
+    const int r = rows[i];
+    ROW_UPDATE(0)
+    ROW_UPDATE(1)
+    ROW_UPDATE(2)
+    ROW_UPDATE(3)
+    ROW_UPDATE(4)
+#ifdef ADAM_SH_FACTORS
+    if (row5 > 0) {   /* sh: its gradient from row i's factors (adam_sh_row) */
+        float fr[SHF_SIZE], gs[SH_NCOEF];
+        for (int e = 0; e < SHF_SIZE; ++e) fr[e] = g5[SHF_SIZE * i + e];
+        sh_grad_expand(fr, gs);
+        int c = 0;
+        for (; c + 4 <= SH_NCOEF; c += 4)
+            adam_update4(p5, (float4)(gs[c], gs[c + 1], gs[c + 2], gs[c + 3]), m5, v5, r * SH_NCOEF + c,
+                         LR4(c, split5, lra5, lrb5), beta1, beta2, omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
+        for (; c < SH_NCOEF; ++c)
+            adam_element(p5, gs[c], m5, v5, r * SH_NCOEF + c, c < split5 ? lra5 : lrb5, beta1, beta2,
+                         omb1, omb2, eps, inv_bc1, inv_sqrt_bc2);
+    }
+#else
+    ROW_UPDATE(5)
+#endif
+    ROW_UPDATE(6)
 }

@@ -20,13 +20,20 @@ inline void store8(__global float *p, float8 v) {
     p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
 }
 
+/* The same for 4 floats */
+inline float4 load4(__global const float *p) { return (float4)(p[0], p[1], p[2], p[3]); }
+
+inline void store4(__global float *p, float4 v) {
+    p[0] = v.x; p[1] = v.y; p[2] = v.z; p[3] = v.w;
+}
+
 /* Where the runtime builds with -DHOST_CLANG=1 (DeviceCaps.host_clang: a driver that compiles
  * kernels with clang for the host CPU, PoCL's CPU devices), clang's generic builtins are inline
  * instructions there, while PoCL's own prefetch() does nothing and its sqrt is an out-of-line call
  * (the caller's vectors spilled around it).  Elsewhere the OpenCL builtins.
  *   PREFETCH(p)  a hint to bring the cache line at p closer (prefetcht0 on x86): gathers whose
  *                addresses are known ahead;
- *   sqrt1, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
+ *   sqrt1, sqrt4, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction);
  *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr). */
@@ -35,6 +42,9 @@ inline void store8(__global float *p, float8 v) {
 #define PREFETCH(p) __builtin_prefetch(p)
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
 inline int clz1(uint x) { return __builtin_clz(x); }   /* x != 0 */
+inline float4 sqrt4(float4 x) {
+    return (float4)(__builtin_sqrtf(x.x), __builtin_sqrtf(x.y), __builtin_sqrtf(x.z), __builtin_sqrtf(x.w));
+}
 inline float8 sqrt8(float8 x) {
     return (float8)(__builtin_sqrtf(x.s0), __builtin_sqrtf(x.s1), __builtin_sqrtf(x.s2),
                     __builtin_sqrtf(x.s3), __builtin_sqrtf(x.s4), __builtin_sqrtf(x.s5),
@@ -45,6 +55,7 @@ inline float8 sqrt8(float8 x) {
 #define PREFETCH(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }
 inline int clz1(uint x) { return (int)clz(x); }
+inline float4 sqrt4(float4 x) { return sqrt(x); }
 inline float8 sqrt8(float8 x) { return sqrt(x); }
 #endif
 

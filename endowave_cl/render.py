@@ -1,7 +1,10 @@
 """The public render op: forward and adjoint of the whole splatting pipeline on the device.
 
-    project4d -> bin_and_sort (scan, bin, radix sort, ranges) -> rasterize
-    Projected     Binned                                        RasterOut      (the stage records)
+    [select] -> project4d -> bin_and_sort (scan, bin, radix sort, ranges) -> rasterize
+    LiveRows    Projected     Binned                                        RasterOut   (the stage records)
+
+``select`` (optional, ops/select.py) first gathers the Gaussians that may be alive at t: the
+later stages then run on those rows only, with the same per-Gaussian results.
 
 ``render`` returns a :class:`RenderOutput` holding the composited channels and the stage records
 the adjoint needs; ``render_backward`` runs rasterize_bwd then project4d_bwd and returns the
@@ -30,6 +33,7 @@ class RenderOutput:
     proj: object                # ops.project.Projected
     binned: object              # ops.binning.Binned: sorted_values, tile_ranges, n_isect, offsets
     raster: object              # ops.rasterize.RasterOut
+    live: object = None         # ops.select.LiveRows when rendered with select=True, else None
     timings: Dict[str, float] = field(default_factory=dict)  # ms per stage when timed
 
     @property
@@ -64,8 +68,11 @@ def _tick(rt, timings, name, t0, timed):
 
 
 def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Optional[float] = None,
-           timed: bool = False) -> RenderOutput:
-    """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``."""
+           timed: bool = False, select: bool = False) -> RenderOutput:
+    """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``.
+    select: first gather the Gaussians that may be alive at t (ops/select.py; the same images):
+    the stage records (and render_backward's gradients) then have one row per selected Gaussian,
+    out.live.rows naming them."""
     from .ops.binning import bin_projected
     from .ops.project import project4d
     from .ops.rasterize import rasterize_projected
@@ -74,6 +81,12 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
     t0 = time.perf_counter()
     if timed:
         rt.queue.finish()
+    live = None
+    if select:
+        from .ops.select import select_live
+        live = select_live(rt, params, t)
+        params = live.params
+        t0 = _tick(rt, timings, "select", t0, timed)
     proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
     t0 = _tick(rt, timings, "project", t0, timed)
     binned = bin_projected(rt, proj, camera.width, camera.height)
@@ -82,7 +95,7 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
     _tick(rt, timings, "rasterize", t0, timed)
     if timed:
         timings["total"] = sum(timings.values())
-    return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, binned, raster, timings)
+    return RenderOutput(raster.out, raster.alpha, camera, t, t_flow, proj, binned, raster, live, timings)
 
 
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
@@ -102,6 +115,9 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     on SIMT devices (GPUs), whose atomics are cheap.
     sh_factors: v_sh as an ops.project.ShGradFactors (its per-Gaussian factors; the training step
     passes it to DeviceAdam) instead of the full [N, NT+1, K, 3] array.
+    A render with select=True: the gradients have one row per selected Gaussian ([L, ...], row i
+    belonging to Gaussian out.live.rows[i]; every other Gaussian's gradient is 0), the densification
+    statistics (still [N]) are updated at those rows, and v_gaussian_features is [L, C].
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
@@ -118,13 +134,17 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
         v_alpha = rt.cached(("render.zero_v_alpha", cam.height, cam.width),
                             lambda: cla.zeros(rt.queue, (cam.height, cam.width), np.float32))
     t0 = time.perf_counter()
+    rows = None
+    if out.live is not None:
+        params, rows = out.live.params, out.live.rows
     p = out.proj
     v2d = rasterize_projected_bwd(rt, p, out.binned, out.raster, v_features, v_alpha, cam.width, cam.height,
                                   deterministic=bool(deterministic))
     t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
     if densify_stats is not None and len(params["means"]):
         accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,
-                                 densify_stats["grad_accum"], densify_stats["count"], densify_stats["max_radius"])
+                                 densify_stats["grad_accum"], densify_stats["count"], densify_stats["max_radius"],
+                                 rows=rows)
     if v_gaussian_features is not None and len(params["means"]):
         from .ops.util import add_inplace
         add_inplace(rt, v2d["v_features"], v_gaussian_features)

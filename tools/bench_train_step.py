@@ -55,6 +55,10 @@ def main(argv=None):
     ap.add_argument("--sh-degree", type=int, default=None,
                     help="the config's sh_degree (0..3; default: the config default, resolved for the scene)")
     ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
+    ap.add_argument("--no-select", action="store_true",
+                    help="every step over every Gaussian (sets $ENDOWAVE_NO_SELECT); by default, with "
+                         "--adam-skip-culled, the steps render and differentiate only those alive at "
+                         "their time, as training does (ops/select.py)")
     ap.add_argument("--kernels", action="store_true",
                     help="also print each part's summed kernel time (OpenCL event profiling of the "
                          "Runtime's launches) and the step's slowest kernels: wall time far above "
@@ -93,6 +97,9 @@ def main(argv=None):
     if args.set:
         from endowave_cl.train.config import apply_values
         apply_values(cfg, dict(item.split("=", 1) for item in args.set), "--set", from_text=True)
+    if args.no_select:
+        from endowave_cl.ops.select import ENV_NO_SELECT
+        os.environ[ENV_NO_SELECT] = "1"
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(scene, cfg, run, rt, log=lambda s: None, resume=False)
         if args.checkpoint:
@@ -115,6 +122,7 @@ def main(argv=None):
             r = resource.getrusage(resource.RUSAGE_SELF)
             return r.ru_utime + r.ru_stime
         order = list(scene.train_indices)
+        select = tr.select_live   # Trainer.train_step below makes the same choice
         for i in range(args.warmup + args.runs):
             k = order[i % len(order)]
             f, tgt = scene.frames[k], tr.targets[k]
@@ -124,7 +132,7 @@ def main(argv=None):
             marks = []   # events launched before each part's end
             c0 = cpu_s()
             t0 = time.perf_counter()
-            out = render(rt, tr.params, f.camera, f.time, tgt.next_time)
+            out = render(rt, tr.params, f.camera, f.time, tgt.next_time, select=select)
             rt.queue.finish()
             t1 = time.perf_counter()
             marks.append(len(events or ()))
@@ -141,7 +149,8 @@ def main(argv=None):
             t3g = time.perf_counter()
             marks.append(len(events or ()))
             tr.adam.step({name[2:]: v for name, v in grads.items()}, tr.group_lrs(0),
-                         visible=out.proj.radius if cfg.adam_skip_culled else None)
+                         visible=out.proj.radius if cfg.adam_skip_culled else None,
+                         rows=None if out.live is None else out.live.rows)
             rt.queue.finish()
             t4 = time.perf_counter()
             marks.append(len(events or ()))
@@ -235,7 +244,7 @@ def main(argv=None):
 def _motion_renderer(tr):
     """(camera, t, t_to) -> the trainer's model's rendered motion [H, W, 2] (Trainer.rendered_motion)."""
     from endowave_cl.render import render
-    return lambda camera, t, t_to: tr.rendered_motion(render(tr.rt, tr.params, camera, t, t_to))
+    return lambda camera, t, t_to: tr.rendered_motion(render(tr.rt, tr.params, camera, t, t_to, select=tr.select_live))
 
 
 if __name__ == "__main__":

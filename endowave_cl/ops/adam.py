@@ -148,17 +148,23 @@ class DeviceAdam:
 
     # -- the update ---------------------------------------------------------------------------
     def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None,
-             visible=None) -> None:
+             visible=None, rows=None) -> None:
         """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept.
         grads["sh"] may be an ops.project.ShGradFactors (render_backward(..., sh_factors=True)):
         the kernel forms the SH gradient from its factors, the same values as the full array.
         visible: None, or an int32 device array [N] (the step's projected radius): rows where it
-        is 0 are left untouched, parameters and moments."""
+        is 0 are left untouched, parameters and moments.
+        rows: None, or an int32 device array [L] of row indices (ops.select.LiveRows.rows): the
+        gradients (and visible) are then compact, [L, ...], row i of them belonging to parameter
+        row rows[i]; every other row is left untouched (cl/adam.cl adam_step_rows)."""
         if lrs:
             self.lrs.update({k: float(v) for k, v in lrs.items()})
         n_rows = int(self.params["means"].shape[0])
-        if visible is not None and (tuple(visible.shape) != (n_rows,) or visible.dtype != np.int32):
-            raise EndowaveError(f"Adam: visible must be int32 [{n_rows}], got {tuple(visible.shape)} {visible.dtype}")
+        n_grad = n_rows if rows is None else int(rows.shape[0])
+        if rows is not None and (rows.dtype != np.int32 or len(rows.shape) != 1 or n_grad > n_rows):
+            raise EndowaveError(f"Adam: rows must be int32 [L] with L <= {n_rows}, got {tuple(rows.shape)} {rows.dtype}")
+        if visible is not None and (tuple(visible.shape) != (n_grad,) or visible.dtype != np.int32):
+            raise EndowaveError(f"Adam: visible must be int32 [{n_grad}], got {tuple(visible.shape)} {visible.dtype}")
         step = self.step_count + 1  # counted once the arguments are valid
         b1, b2 = self.betas
         inv_bc1 = 1.0 / (1.0 - b1 ** step)
@@ -169,7 +175,7 @@ class DeviceAdam:
         for n in PARAM_NAMES:
             p = self.params[n]
             row, split, lra, lrb = group_lr_layout(n, p.shape, self.lrs)
-            count = int(p.size)
+            count = n_grad * max(row, 1) if p.size else 0
             factored = False
             g = grads.get(n) if hasattr(grads, "get") else grads[n]
             if g is None:
@@ -178,29 +184,39 @@ class DeviceAdam:
                 count = 0  # nothing to update in this group
                 gbuf = self.rt.dummy_buffer()
             else:
-                if tuple(g.shape) != tuple(p.shape) or g.dtype != np.float32:
+                want = (n_grad,) + tuple(p.shape[1:])
+                if tuple(g.shape) != want or g.dtype != np.float32:
                     raise EndowaveError(f"Adam: gradient of {n!r} has shape {tuple(g.shape)} {g.dtype}, "
-                                        f"parameter has {tuple(p.shape)} float32")
+                                        f"expected {want} float32")
                 factored = n == "sh" and hasattr(g, "factors")   # ops.project.ShGradFactors
                 if factored:
                     options = ["-DADAM_SH_FACTORS", f"-DSH_DEGREE={int(round(math.sqrt(g.K))) - 1}",
                                f"-DNT={g.nt}"]
                 gbuf = self._buf(g.factors if factored else g)
-            args += [self._buf(p), gbuf, self._buf(self.exp_avg[n]), self._buf(self.exp_avg_sq[n]),
-                     np.int32(count), np.int32(max(row, 1)), np.int32(split),
-                     np.float32(lra), np.float32(lrb)]
+            if rows is None:
+                args += [self._buf(p), gbuf, self._buf(self.exp_avg[n]), self._buf(self.exp_avg_sq[n]),
+                         np.int32(count), np.int32(max(row, 1)), np.int32(split),
+                         np.float32(lra), np.float32(lrb)]
+            else:   # row 0: the group is left alone (adam_step_rows)
+                args += [self._buf(p), gbuf, self._buf(self.exp_avg[n]), self._buf(self.exp_avg_sq[n]),
+                         np.int32(max(row, 1) if count else 0), np.int32(split), np.float32(lra), np.float32(lrb)]
             total += count
             # a factored sh gradient: sh_gaussians_per_item Gaussians per work-item (cl/adam.cl adam_sh_block)
             runs += -(-(count // max(row, 1)) // sh_gaussians_per_item(row)) if factored else -(-count // ADAM_RUN)
-        if total > MAX_ELEMENTS:
-            raise EndowaveError(f"Adam: {total} parameters exceed the kernel's int index range")
+        size = sum(int(self.params[n].size) for n in PARAM_NAMES)
+        if size > MAX_ELEMENTS:
+            raise EndowaveError(f"Adam: {size} parameters exceed the kernel's int index range")
         self.step_count = step
         if total == 0:
             return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
-                 np.float32(inv_bc1), np.float32(inv_sqrt_bc2),
-                 self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None)]
-        self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args)
+                 np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
+        vis = [self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None)]
+        if rows is None:
+            self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args, *vis)
+        else:
+            self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step_rows", options), n_grad, WORK_GROUP, *args,
+                              np.int32(n_grad), rows.data, *vis)
 
     def reset_moments(self, name: str) -> None:
         """Zero one group's moments (3DGS does this for opacity at an opacity reset)."""

@@ -57,9 +57,10 @@ def project_lanes(rt) -> int:
     return VEC_WIDTH if v == "vector" else 0
 
 
-def _launch(rt, file: str, name: str, opts, n: int, *args, vec_opts=lambda lanes: []):
+def launch_lanes(rt, file: str, name: str, opts, n: int, *args, vec_opts=lambda lanes: []):
     """Build (variant options added; vec_opts(lanes): more for the vector variant) and launch
-    project4d / project4d_bwd over n Gaussians.  The vector kernels need N >= lanes (every lane a
+    a kernel written on cl/project4d_common.h's lanes (project4d, project4d_bwd, select's
+    live_flags) over n Gaussians.  The vector kernels need N >= lanes (every lane a
     Gaussian: the last work-item ends at N); smaller scenes run the scalar kernels."""
     lanes = project_lanes(rt)
     if lanes and n >= lanes:
@@ -183,7 +184,7 @@ def project4d(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Option
     tiles_x, tiles_y = _tiles(camera)
     cam = camera_buffer(rt, camera)
     out.camera, out.camera_buf = camera, cam
-    _launch(rt, "project4d.cl", "project4d", _options(rt, degree, nt, channels), n,
+    launch_lanes(rt, "project4d.cl", "project4d", _options(rt, degree, nt, channels), n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, params["sh"].data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),
@@ -228,7 +229,7 @@ def project4d_bwd(rt, params: Dict[str, cla.Array], camera, t: float, t_flow: Op
         ok = ((nt + 1) * K * 3) % lanes == 0 and base_align % vbytes == 0 and sh_buf.offset % vbytes == 0
         return ["-DP4_NT_STORE=1"] if ok and not sh_factors else []
     opts = _options(rt, degree, nt, channels) + (["-DP4_SH_FACTORS"] if sh_factors else [])
-    _launch(rt, "project4d_bwd.cl", "project4d_bwd", opts, n,
+    launch_lanes(rt, "project4d_bwd.cl", "project4d_bwd", opts, n,
                  np.int32(n), params["means"].data, params["scales"].data, params["quat_l"].data,
                  params["quat_r"].data, params["opacity"].data, proj.color_inner.data, params["phase"].data,
                  cam.data, np.float32(t), np.float32(0.0 if t_flow is None else t_flow),

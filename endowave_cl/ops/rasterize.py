@@ -414,16 +414,23 @@ def rasterize_projected_bwd(rt, proj, binned, raster: RasterOut, v_out, v_alpha,
 
 
 def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
-                             max_radius) -> None:
+                             max_radius, rows=None) -> None:
     """In place on the device, for Gaussians with radius > 0: grad_accum [N] += |v_means2d * (W/2, H/2)|,
-    count [N] (int32) += 1, max_radius [N] = max(max_radius, radius)."""
-    N = int(radius.shape[0])
-    assert v_means2d.shape == (N, 2) and grad_accum.shape == (N,) and count.shape == (N,) \
-        and max_radius.shape == (N,)
+    count [N] (int32) += 1, max_radius [N] = max(max_radius, radius).
+    rows: None, or int32 [L] (ops.select.LiveRows.rows): v_means2d [L, 2] and radius [L] are then
+    a step's on selected rows, entry i belonging to Gaussian rows[i]."""
+    L = int(radius.shape[0])
+    N = int(grad_accum.shape[0])
+    assert v_means2d.shape == (L, 2) and count.shape == (N,) and max_radius.shape == (N,)
+    assert (L == N) if rows is None else (tuple(rows.shape) == (L,) and rows.dtype == np.int32)
     assert radius.dtype == np.int32 and count.dtype == np.int32
-    if N == 0:
+    if L == 0:
         return
-    k = rt.kernel("densify_stats.cl", "accumulate_densify_stats")
     wg = 64
-    rt.launch_1d(k, N, wg, v_means2d.data, radius.data, np.float32(0.5 * width),
-                 np.float32(0.5 * height), np.int32(N), grad_accum.data, count.data, max_radius.data)
+    half = (np.float32(0.5 * width), np.float32(0.5 * height))
+    if rows is None:
+        rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats"), L, wg, v_means2d.data,
+                     radius.data, *half, np.int32(L), grad_accum.data, count.data, max_radius.data)
+    else:
+        rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats_rows"), L, wg, v_means2d.data,
+                     radius.data, *half, np.int32(L), rows.data, grad_accum.data, count.data, max_radius.data)

@@ -2,7 +2,7 @@
 
 One step (``Trainer.train_step``) follows ../shared/DESIGN.md's data flow:
 
-    render at t_k with flow to the next training frame   (project4d -> bin -> sort -> rasterize)
+    render at t_k with flow to the next training frame   (select -> project4d -> bin -> sort -> rasterize)
     losses -> one scalar and the gradient image           (RGB L1 + D-SSIM, depth, flow, rational
                                                            wavelet: OpenCL, train/device_losses.py)
     render_backward                                       (rasterize_bwd -> project4d_bwd)
@@ -233,7 +233,7 @@ class Trainer:
         forward = {}
 
         def model_motion(camera, t: float, t_to: float) -> np.ndarray:
-            out = render(self.rt, self.params, camera, t, t_to)
+            out = render(self.rt, self.params, camera, t, t_to, select=self.select_live)
             forward.setdefault("out", out)     # the first render is at the step's own time
             return self.rendered_motion(out)
 
@@ -243,6 +243,14 @@ class Trainer:
             return None
         camera, t, dev = drawn
         return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))
+
+    @property
+    def select_live(self) -> bool:
+        """Steps render and differentiate only the Gaussians alive at their time (ops/select.py)
+        when Adam leaves the culled ones alone anyway (adam_skip_culled): the same updates, for
+        a fraction of the per-Gaussian work ($ENDOWAVE_NO_SELECT=1 turns it off, for benchmarks)."""
+        from ..ops.select import select_enabled
+        return bool(self.cfg.adam_skip_culled) and select_enabled()
 
     @staticmethod
     def rendered_motion(out) -> np.ndarray:
@@ -254,9 +262,9 @@ class Trainer:
         out: the step's forward when it was rendered already (train_step_between)."""
         from ..ops.util import nonfinite_flag, read_back
         if out is None:
-            out = render(self.rt, self.params, camera, t, t_next)                        # forward
+            out = render(self.rt, self.params, camera, t, t_next, select=self.select_live)   # forward
         pending = self.losses_enqueue(out, dev)                                          # losses
-        grads = render_backward(self.rt, self.params, out, pending.v_features,                    # adjoints
+        grads = render_backward(self.rt, self.params, out, pending.v_features,           # adjoints
                                 v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
                                 deterministic=True if self.cfg.deterministic else None,
                                 sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
@@ -264,7 +272,8 @@ class Trainer:
         total, parts = pending.finish(host)
         self._check_finite(total, bool(host["nonfinite"][0]), what)
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step),  # Adam (v_means -> means)
-                       visible=out.proj.radius if self.cfg.adam_skip_culled else None)
+                       visible=out.proj.radius if self.cfg.adam_skip_culled else None,
+                       rows=None if out.live is None else out.live.rows)
         self.step += 1
         return parts
 
