@@ -52,7 +52,7 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     for k in scene.test_indices:
         f = scene.frames[k]
         t_flow = scene.frames[k + 1].time if k in flow_refs else None
-        out = render(rt, params, f.camera, f.time, t_flow).host()
+        out = render(rt, params, f.camera, f.time, t_flow, select=True).host()   # the same images, faster
         row = {"index": k, "name": f.name, "time": f.time,
                "model": frame_scores(out["image"], f.image, f.mask, use_lpips)}
         if k in flow_refs:
@@ -247,7 +247,7 @@ def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[
     write_bytes_atomic(plot, per_frame_plot_png(m, title))
     k = worst_frame(m)
     f = scene.frames[k]
-    pred = render(rt, params, f.camera, f.time).host()["image"]
+    pred = render(rt, params, f.camera, f.time, select=True).host()["image"]
     worst = run_dir / "eval_worst.png"
     write_png_atomic(worst, error_panel_image(pred, f))
     return {"per_frame_plot": str(plot), "worst_frame_image": str(worst), "worst_frame": k}
@@ -256,12 +256,12 @@ def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[
 def _render_fps(rt, params, f, runs: int) -> float:
     from .render import render
     for _ in range(3):
-        render(rt, params, f.camera, f.time)
+        render(rt, params, f.camera, f.time, select=True)
     rt.queue.finish()
     ts = []
     for _ in range(runs):
         t0 = time.perf_counter()
-        render(rt, params, f.camera, f.time)
+        render(rt, params, f.camera, f.time, select=True)
         rt.queue.finish()
         ts.append(time.perf_counter() - t0)
     return 1.0 / statistics.median(ts)

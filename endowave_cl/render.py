@@ -70,9 +70,10 @@ def _tick(rt, timings, name, t0, timed):
 def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Optional[float] = None,
            timed: bool = False, select: bool = False) -> RenderOutput:
     """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``.
-    select: first gather the Gaussians that may be alive at t (ops/select.py; the same images):
-    the stage records (and render_backward's gradients) then have one row per selected Gaussian,
-    out.live.rows naming them."""
+    select: first gather the Gaussians that may be alive at t (ops/select.py; the same images)
+    when they are at most SELECT_MAX_SHARE of them: the stage records (and render_backward's
+    gradients) then have one row per selected Gaussian, out.live.rows naming them (out.live is
+    None when every row was rendered)."""
     from .ops.binning import bin_projected
     from .ops.project import project4d
     from .ops.rasterize import rasterize_projected
@@ -83,9 +84,10 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
         rt.queue.finish()
     live = None
     if select:
-        from .ops.select import select_live
-        live = select_live(rt, params, t)
-        params = live.params
+        from .ops.select import SELECT_MAX_SHARE, select_live
+        live = select_live(rt, params, t, SELECT_MAX_SHARE)
+        if live is not None:
+            params = live.params
         t0 = _tick(rt, timings, "select", t0, timed)
     proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
     t0 = _tick(rt, timings, "project", t0, timed)

@@ -248,7 +248,7 @@ class ViewerModel:
     def render_host(self, cam: Camera, t: float, t_flow: Optional[float] = None) -> Dict[str, np.ndarray]:
         from .render import render
         with self.lock:
-            return render(self.rt, self.params, cam, float(t), t_flow).host()
+            return render(self.rt, self.params, cam, float(t), t_flow, select=True).host()
 
     def main_view(self, cam: Camera, st: ViewState) -> Tuple[np.ndarray, Dict[str, object]]:
         """The main pane (uint8 RGB) in the chosen mode, and what its colour map means."""

@@ -37,11 +37,11 @@ def _camera(w, h):
 
 
 def _short_lived(n, seed):
-    """Gaussians with lifetimes from a hundredth to the whole sequence, rotated in space-time, some
+    """Gaussians with lifetimes from a hundredth to a third of the sequence, rotated in space-time, some
     of them behind the camera: at t = 0.5 some are alive, many are not."""
     g = Gaussians.random(n, seed=seed, center=(0, 0, 3), spread=1.2, scale=0.06)
     rng = np.random.default_rng(seed)
-    g.scales[:, 3] = np.log(rng.uniform(0.01, 0.5, n)).astype(np.float32)
+    g.scales[:, 3] = np.log(rng.uniform(0.01, 0.15, n)).astype(np.float32)
     g.means[: n // 10, 2] = -1.0
     return g
 
@@ -126,6 +126,19 @@ def test_selected_render_and_adjoint_equal_the_full_ones(rt):
         assert np.all(rest == 0), k
     for k in sf:
         assert np.array_equal(sf[k], ss[k]), k
+
+
+def test_select_leaves_a_mostly_alive_model_whole(rt):
+    """Above SELECT_MAX_SHARE alive, render(select=True) renders every row (live None), the same bits."""
+    from endowave_cl.ops.select import SELECT_MAX_SHARE
+    g = _short_lived(300, 8)
+    g.scales[:, 3] = np.float32(2.0)     # lives of several sequences before the 4D rotation
+    params = upload(rt, g)
+    assert select_live(rt, params, 0.5, SELECT_MAX_SHARE) is None
+    assert len(select_live(rt, params, 0.5)) > SELECT_MAX_SHARE * 300
+    out = render(rt, params, _camera(40, 32), 0.5, select=True)
+    assert out.live is None
+    assert np.array_equal(out.features.get(), render(rt, params, _camera(40, 32), 0.5).features.get())
 
 
 @pytest.mark.oclgrind
@@ -217,7 +230,7 @@ def test_training_with_and_without_selection_gives_the_same_bits(rt, tiny_scene,
     with the same parameters and moments as steps over every Gaussian ($ENDOWAVE_NO_SELECT)."""
     from conftest import tiny_config
     from endowave_cl.data.scene import load_scene
-    from endowave_cl.ops.select import ENV_NO_SELECT
+    from endowave_cl.ops.select import ENV_NO_SELECT, SELECT_MAX_SHARE
     from endowave_cl.train.trainer import Trainer
     scene = load_scene(tiny_scene)
     cfg = dict(iterations=60, init_points=2000, densify_from=20, densify_every=20, densify_until=40,
@@ -231,7 +244,7 @@ def test_training_with_and_without_selection_gives_the_same_bits(rt, tiny_scene,
         tr = Trainer(scene, tiny_config(**cfg), tmp_path / f"run{int(off)}", rt, log=lambda s: None)
         assert tr.select_live is (not off)
         tr.train(progress=False)
-        assert 0 < len(select_live(rt, tr.params, 0.5)) < len(tr.params["means"])   # rows were left out
+        assert select_live(rt, tr.params, 0.5, SELECT_MAX_SHARE) is not None   # the steps ran on rows
         states.append(({k: a.get() for k, a in tr.params.items()}, tr.adam.state_dict()))
     (p0, s0), (p1, s1) = states
     for name in PARAM_NAMES:

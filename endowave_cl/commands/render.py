@@ -48,7 +48,7 @@ def run(args) -> int:
         f = frames[k]
         if k not in idx and args.no_video:
             continue
-        h = render(rt, params, f.camera, f.time).host()
+        h = render(rt, params, f.camera, f.time, select=True).host()
         img = np.clip(h["image"], 0, 1)
         if k in idx:
             write_png_atomic(out / "frames" / f"{f.name or k:0>6}.png", img)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 
@@ -28,6 +28,8 @@ from .scan import exclusive_scan_with_total
 from .util import f32_literal
 
 WORK_GROUP = 128
+SELECT_MAX_SHARE = 0.5   # render(select=True) gathers the rows when at most this share of them is alive:
+                         # above it the gather and Adam on rows cost more than the culled rows do
 ENV_NO_SELECT = "ENDOWAVE_NO_SELECT"   # 1: training renders every Gaussian (benchmarks compare the two)
 LIVE_SLACK = 0.99    # LIVE_SLACK in cl/select.cl: rows down to 0.99 x MARGINAL_CULL are selected
 
@@ -80,8 +82,9 @@ def gather_params(rt, params: Dict[str, object], rows, n_rows: int) -> Dict[str,
     return out
 
 
-def select_live(rt, params: Dict[str, object], t: float) -> LiveRows:
-    """The Gaussians that may be alive at t and their parameters (one blocking read: the count)."""
+def select_live(rt, params: Dict[str, object], t: float, max_share: float = 1.0) -> Optional[LiveRows]:
+    """The Gaussians that may be alive at t and their parameters (one blocking read: the count);
+    None when more than max_share of the rows are selected (nothing is gathered then)."""
     n = int(params["means"].shape[0])
     flags = live_flags(rt, params, t)
     if n == 0:
@@ -90,6 +93,8 @@ def select_live(rt, params: Dict[str, object], t: float) -> LiveRows:
     else:
         offsets = exclusive_scan_with_total(rt, flags)   # [N + 1]
         count = int(offsets[n:n + 1].get()[0])
+        if count > max_share * n:
+            return None
         rows = rt.empty((count,), np.int32)
         if count:
             rt.launch_1d(rt.kernel("select.cl", "live_rows", _options()), n, WORK_GROUP, np.int32(n), flags.data,
