@@ -141,6 +141,31 @@ def test_select_leaves_a_mostly_alive_model_whole(rt):
     assert np.array_equal(out.features.get(), render(rt, params, _camera(40, 32), 0.5).features.get())
 
 
+def test_nothing_alive_renders_the_background_and_steps_nothing(rt):
+    """Every Gaussian culled at t: zero rows selected, an empty image, empty gradients, and an
+    Adam step on no rows that changes nothing but its count."""
+    n = 50
+    g = _short_lived(n, 9)
+    g.means[:, 3] = 5.0                   # every Gaussian lives far after the sequence
+    params = upload(rt, g)
+    before = {k: a.get() for k, a in params.items()}
+    out = render(rt, params, _camera(40, 32), 0.5, 0.6, select=True)
+    assert out.live is not None and len(out.live) == 0 and out.n_isect == 0
+    assert np.all(out.alpha.get() == 0)
+    stats = {"grad_accum": cla.zeros(rt.queue, (n,), np.float32), "count": cla.zeros(rt.queue, (n,), np.int32),
+             "max_radius": cla.zeros(rt.queue, (n,), np.float32)}
+    grads = render_backward(rt, params, out, cla.zeros(rt.queue, (32, 40, 6), np.float32), densify_stats=stats,
+                            sh_factors=True)
+    assert all(getattr(v, "factors", v).shape[0] == 0 for v in grads.values())
+    opt = DeviceAdam(rt, params, {"means": 1e-3, "scales": 1e-3, "quat_l": 1e-3, "quat_r": 1e-3, "opacity": 1e-2,
+                                  "sh": 1e-3, "phase": 1e-3})
+    opt.step({k[2:]: v for k, v in grads.items()}, visible=out.proj.radius, rows=out.live.rows)
+    assert opt.step_count == 1
+    for k, a in params.items():
+        assert np.array_equal(a.get(), before[k]), k
+    assert np.all(stats["count"].get() == 0)
+
+
 @pytest.mark.oclgrind
 def test_densify_stats_on_rows_match_the_full_kernel(rt):
     n, L = small(300, 30), small(90, 9)
