@@ -56,38 +56,26 @@ inline void adam_element(__global float *p, const float gj, __global float *m, _
     p[j] -= (lr * inv_bc1) * mj / denom;
 }
 
-/* The same operations on elements j0 .. j0 + 7 with their gradients gj and learning rates lr;
- * frozen lanes (lr 0) store back their old values. */
-inline void adam_update8(__global float *p, const float8 gj, __global float *m, __global float *v,
-                         const int j0, const float8 lr, const float beta1, const float beta2,
-                         const float omb1, const float omb2, const float eps, const float inv_bc1,
-                         const float inv_sqrt_bc2) {
-    const int8 frozen = lr == 0.0f;
-    const float8 m0 = load8(m + j0), v0 = load8(v + j0), p0 = load8(p + j0);
-    const float8 mj = beta1 * m0 + omb1 * gj;
-    const float8 vj = beta2 * v0 + omb2 * gj * gj;
-    const float8 denom = sqrt8(vj) * inv_sqrt_bc2 + eps;
-    const float8 pj = p0 - (lr * inv_bc1) * mj / denom;
-    store8(m + j0, frozen ? m0 : mj);
-    store8(v + j0, frozen ? v0 : vj);
-    store8(p + j0, frozen ? p0 : pj);
+/* The same operations on W consecutive elements j0 .. j0 + W - 1 (W = 8: the runs of adam_run;
+ * W = 4: adam_step_rows) with their gradients gj and learning rates lr; frozen lanes (lr 0) store
+ * back their old values. */
+#define ADAM_UPDATE_W(W)                                                                         \
+inline void adam_update##W(__global float *p, const float##W gj, __global float *m,              \
+                           __global float *v, const int j0, const float##W lr, const float beta1, \
+                           const float beta2, const float omb1, const float omb2, const float eps, \
+                           const float inv_bc1, const float inv_sqrt_bc2) {                      \
+    const int##W frozen = lr == 0.0f;                                                           \
+    const float##W m0 = load##W(m + j0), v0 = load##W(v + j0), p0 = load##W(p + j0);            \
+    const float##W mj = beta1 * m0 + omb1 * gj;                                                 \
+    const float##W vj = beta2 * v0 + omb2 * gj * gj;                                            \
+    const float##W denom = sqrt##W(vj) * inv_sqrt_bc2 + eps;                                    \
+    const float##W pj = p0 - (lr * inv_bc1) * mj / denom;                                       \
+    store##W(m + j0, frozen ? m0 : mj);                                                         \
+    store##W(v + j0, frozen ? v0 : vj);                                                         \
+    store##W(p + j0, frozen ? p0 : pj);                                                         \
 }
-
-/* The same on 4 elements (adam_step_rows) */
-inline void adam_update4(__global float *p, const float4 gj, __global float *m, __global float *v,
-                         const int j0, const float4 lr, const float beta1, const float beta2,
-                         const float omb1, const float omb2, const float eps, const float inv_bc1,
-                         const float inv_sqrt_bc2) {
-    const int4 frozen = lr == 0.0f;
-    const float4 m0 = load4(m + j0), v0 = load4(v + j0), p0 = load4(p + j0);
-    const float4 mj = beta1 * m0 + omb1 * gj;
-    const float4 vj = beta2 * v0 + omb2 * gj * gj;
-    const float4 denom = sqrt4(vj) * inv_sqrt_bc2 + eps;
-    const float4 pj = p0 - (lr * inv_bc1) * mj / denom;
-    store4(m + j0, frozen ? m0 : mj);
-    store4(v + j0, frozen ? v0 : vj);
-    store4(p + j0, frozen ? p0 : pj);
-}
+ADAM_UPDATE_W(8)
+ADAM_UPDATE_W(4)
 
 /* Elements j0 .. j0 + ADAM_RUN - 1 of a group of n (the group's last, shorter run element by
  * element); vis: the visibility array, or 0 (no skipping).  Element j belongs to Gaussian j / row. */

@@ -11,25 +11,12 @@ from conftest import small
 from endowave_cl.camera import Camera
 from endowave_cl.gaussians import MARGINAL_CULL, PARAM_NAMES, Gaussians, upload
 from endowave_cl.ops.adam import DeviceAdam
-from endowave_cl.ops.project import ENV_VARIANT, ENV_VEC_WIDTH, project4d, project_lanes
+from endowave_cl.ops.project import project4d
 from endowave_cl.ops.rasterize import accumulate_densify_stats
 from endowave_cl.ops.select import LIVE_SLACK, gather_params, live_flags, select_live
 from endowave_cl.reference.select import live_flags_ref, marginal_ref, select_live_ref
 from endowave_cl.render import render, render_backward
-
-VARIANT_PARAMS = ["scalar", "vector8", "vector16"]
-
-
-@pytest.fixture(params=VARIANT_PARAMS)
-def variant(request, monkeypatch, rt):
-    """live_flags in each of project4d's variants (it is written on the same lanes)."""
-    name = request.param
-    monkeypatch.setenv(ENV_VARIANT, name[:6])
-    monkeypatch.delenv(ENV_VEC_WIDTH, raising=False)
-    if name != "scalar":
-        monkeypatch.setenv(ENV_VEC_WIDTH, name[6:])
-    assert project_lanes(rt) == (0 if name == "scalar" else int(name[6:]))
-    return name
+from test_project4d import variant  # noqa: F401  (live_flags is written on project4d's lanes: each variant)
 
 
 def _camera(w, h):

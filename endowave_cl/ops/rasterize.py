@@ -426,11 +426,6 @@ def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, gra
     assert radius.dtype == np.int32 and count.dtype == np.int32
     if L == 0:
         return
-    wg = 64
-    half = (np.float32(0.5 * width), np.float32(0.5 * height))
-    if rows is None:
-        rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats"), L, wg, v_means2d.data,
-                     radius.data, *half, np.int32(L), grad_accum.data, count.data, max_radius.data)
-    else:
-        rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats_rows"), L, wg, v_means2d.data,
-                     radius.data, *half, np.int32(L), rows.data, grad_accum.data, count.data, max_radius.data)
+    rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats"), L, 64, v_means2d.data, radius.data,
+                 np.float32(0.5 * width), np.float32(0.5 * height), np.int32(L), rt.buf(rows),
+                 np.int32(rows is not None), grad_accum.data, count.data, max_radius.data)
