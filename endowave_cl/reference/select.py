@@ -9,8 +9,7 @@ from typing import Dict, Tuple
 import numpy as np
 
 from ..gaussians import MARGINAL_CULL, PARAM_NAMES, Gaussians, covariance_4d
-
-SIGMA_TT_MIN = 1e-12   # cl/project4d_common.h
+from .project import SIGMA_TT_MIN
 
 
 def marginal_ref(g: Gaussians, t: float) -> Tuple[np.ndarray, np.ndarray]:
