@@ -100,7 +100,7 @@ def main():
     thr = 1000 / (time.perf_counter() - t)
     ray.shutdown()
     print(f"ray empty task: {1e3 * rt:.1f} ms round trip, {thr:.0f} tasks/s in parallel")
-    print(f"speed-up vs one after another: " + ", ".join(f"{k} {seq / v:.2f}x" for k, v in results.items()))
+    print("speed-up vs one after another: " + ", ".join(f"{k} {seq / v:.2f}x" for k, v in results.items()))
     print("uptime after:", subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
 
 

@@ -62,7 +62,6 @@ def main(argv=None):
     import pyopencl.array as cla
     import endowave_cl.ops.adam as adam_mod
     from endowave_cl.data.scene import load_scene
-    from endowave_cl.gaussians import PARAM_NAMES
     from endowave_cl.ops.adam import DeviceAdam
     from endowave_cl.ops.project import project4d, project4d_bwd
     from endowave_cl.ops.rasterize import rasterize, rasterize_bwd

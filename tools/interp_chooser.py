@@ -41,7 +41,6 @@ def main(argv=None) -> int:
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     import torch
     import torch.nn as nn
-    import torch.nn.functional as F
 
     from endowave_cl.baselines import sample_displaced
     from endowave_cl.data.flow import METHODS, estimate_flow

@@ -102,7 +102,7 @@ def _f(v, fmt: str) -> str:
 
 
 def markdown(rep: dict) -> str:
-    lines = [f"# endowave-cl batch report", "",
+    lines = ["# endowave-cl batch report", "",
              f"Manifest `{rep['manifest']}`; stages {', '.join(rep['stages'])}; "
              f"{rep['counts']['done']} scene(s) done, {rep['counts']['failed']} failed, "
              f"{rep['counts']['incomplete']} incomplete.", "",

@@ -13,7 +13,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 import pyopencl.array as cla
 
-from endowave_cl.layout import TILE, tile_grid  # noqa: F401  (tile_grid: part of this module's API)
+from endowave_cl.layout import tile_grid  # noqa: F401  (part of this module's API)
 from endowave_cl.ops.scan import exclusive_scan_with_total
 from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
 

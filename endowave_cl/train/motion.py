@@ -20,7 +20,7 @@ quaternion pair of reference/project.py's convention (R = M_left(q_l) M_right(q_
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional, Tuple
+from typing import Dict, Tuple
 
 import numpy as np
 

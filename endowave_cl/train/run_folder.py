@@ -26,7 +26,7 @@ from typing import Callable, Iterable, List, Optional
 
 import numpy as np
 
-from ..atomic import TEMP_RE, pid_alive, stale_temporaries
+from ..atomic import TEMP_RE, stale_temporaries
 from ..errors import EndowaveError
 from ..checkpoint import checkpoints_by_step, load_newest_good_checkpoint
 
