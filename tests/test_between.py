@@ -530,3 +530,19 @@ def test_between_target_pushes_once_along_the_consistent_flow():
     assert np.abs(each[inner] - truth).mean() > 5 * np.abs(fused[inner] - truth).mean()
     given = between_target(scene, pair, 0.5, push="fused", pushed_flows=consistent_flows([pair, wrong]), **kw)[0]
     np.testing.assert_array_equal(given, fused)
+
+
+def test_draw_fraction_distributions():
+    """uniform: the generator's draw itself; triangular: density 4 s / 4 (1 - s), so its quartiles
+    are 1 / (2 sqrt 2), 1/2 and 1 - 1 / (2 sqrt 2), and 3/4 of the draws fall in [1/4, 3/4]."""
+    from endowave_cl.train.between import draw_fraction
+    a, b = np.random.default_rng(11), np.random.default_rng(11)
+    assert [draw_fraction(a) for _ in range(5)] == [float(b.uniform(0.0, 1.0)) for _ in range(5)]
+    rng = np.random.default_rng(0)
+    s = np.array([draw_fraction(rng, "triangular") for _ in range(40000)])
+    assert s.min() > 0.0 and s.max() < 1.0
+    q = 1.0 / (2.0 * np.sqrt(2.0))
+    np.testing.assert_allclose(np.quantile(s, [0.25, 0.5, 0.75]), [q, 0.5, 1.0 - q], atol=0.01)
+    assert abs(np.mean((s >= 0.25) & (s <= 0.75)) - 0.75) < 0.01
+    u = np.array([draw_fraction(rng, "uniform") for _ in range(40000)])
+    assert abs(np.mean((u >= 0.25) & (u <= 0.75)) - 0.5) < 0.01

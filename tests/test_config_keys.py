@@ -655,6 +655,29 @@ def _between_by_time(scene, rt, tmp_path):
         np.testing.assert_allclose(dev.image.get(), want_img, atol=1e-6)
 
 
+def _between_s(scene, rt, tmp_path):
+    """between_s: the drawn step's time is the pair's frame times mixed at the fraction that
+    distribution gives from the same generator (triangular: the mean of two uniform draws); other
+    names are refused by name."""
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.between import between_target, pair_time
+    from endowave_cl.train.config import TrainConfig, validate_config
+    times = {}
+    for dist in ("uniform", "triangular"):
+        tr = _trainer(scene, rt, tmp_path / dist, iterations=0, between_prob=1.0, between_s=dist)
+        rng = np.random.default_rng(5)
+        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+        u = float(rng.uniform(0.0, 1.0))
+        s = u if dist == "uniform" else 0.5 * (u + float(rng.uniform(0.0, 1.0)))
+        _, t, dev = tr._between.draw(np.random.default_rng(5))
+        assert t == pytest.approx(pair_time(scene, pair, s), abs=1e-12)
+        np.testing.assert_allclose(dev.image.get(), between_target(scene, pair, s, **_target_kw(tr))[0], atol=1e-6)
+        times[dist] = t
+    assert times["uniform"] != times["triangular"]
+    with pytest.raises(EndowaveError, match="between_s"):
+        validate_config(TrainConfig(between_s="middle"), "config.json")
+
+
 def _between_sampler(scene, rt, tmp_path):
     """between_sampler: the drawn in-between target samples the frames with that sampler."""
     from endowave_cl.train.between import between_target
@@ -919,6 +942,7 @@ CHECKS = {
     "between_two_flow": _between_two_flow,
     "between_sampler": _between_sampler,
     "between_by_time": _between_by_time,
+    "between_s": _between_s,
     "flow_anneal_final": _flow_anneal_final,
     "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,

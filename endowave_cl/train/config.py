@@ -92,6 +92,10 @@ class TrainConfig:
                                     # from 1 at densify_until to this at the last step (0: the run
                                     # ends on the training frames alone; 1: constant; 0.5: what
                                     # suits the real and the synthetic scenes, QUALITY.md finding 11)
+    between_s: str = "uniform"      # where in the pair an in-between step's time falls
+                                    # (train/between.py S_DISTRIBUTIONS): "uniform" over it, or
+                                    # "triangular", twice as often at its middle and falling to
+                                    # none at its two frames (docs/QUALITY.md finding 30)
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
@@ -416,7 +420,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
-    from .between import FUSE_MODES, PUSH_MODES, SPLAT_MODES
+    from .between import FUSE_MODES, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES
+    if cfg.between_s not in S_DISTRIBUTIONS:
+        raise EndowaveError(f"{source}: key 'between_s' must be one of {', '.join(S_DISTRIBUTIONS)}, "
+                            f"got {cfg.between_s!r}")
     if cfg.between_fuse not in FUSE_MODES:
         raise EndowaveError(f"{source}: key 'between_fuse' must be one of {', '.join(FUSE_MODES)}, "
                             f"got {cfg.between_fuse!r}")
