@@ -15,6 +15,16 @@ import pytest
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 TINY_SIZE = dict(width=64, height=48, frames=10)   # the training tests' synthetic scene
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+
+
+def load_tool(name: str):
+    """The module tools/<name>.py (the tools are scripts, not a package)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 ENDONERF_PULLING = SHARED / "data" / "endonerf" / "pulling_soft_tissues"
 
 

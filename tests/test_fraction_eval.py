@@ -2,22 +2,15 @@
 frames' own times its figures are eval's (the scene generated again gives the same frames there)."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 
-from conftest import tiny_config
-
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
+from conftest import load_tool, tiny_config
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("fraction_eval", TOOLS / "fraction_eval.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("fraction_eval")
 
 
 def test_fraction_eval_at_the_test_frames_is_evals(rt, tiny_scene, tmp_path, capsys):

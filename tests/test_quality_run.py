@@ -2,18 +2,13 @@
 are still written to --json."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
+from conftest import load_tool
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("quality_run", TOOLS / "quality_run.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("quality_run")
 
 
 def _row(seed):

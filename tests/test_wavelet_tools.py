@@ -1,24 +1,12 @@
 """Smoke tests of the wavelet tools (tiny settings): they run and print what they promise."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-from conftest import oclgrind_active
-
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
+from conftest import load_tool as load, oclgrind_active
 
 
 pytestmark = pytest.mark.skipif(oclgrind_active(), reason="full-size tool runs are too slow on Oclgrind")
-
-
-def load(name):
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_compare_wavelets_synthetic(tmp_path, capsys, rt):
