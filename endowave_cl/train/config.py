@@ -95,7 +95,8 @@ class TrainConfig:
     between_s: str = "uniform"      # where in the pair an in-between step's time falls
                                     # (train/between.py S_DISTRIBUTIONS): "uniform" over it, or
                                     # "triangular", twice as often at its middle and falling to
-                                    # none at its two frames (docs/QUALITY.md finding 30)
+                                    # none at its two frames; it moves quality towards the
+                                    # middle, not up (docs/QUALITY.md finding 30)
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
