@@ -33,8 +33,7 @@ def main(argv=None) -> int:
     from endowave_cl.gaussians import upload
     from endowave_cl.metrics import frame_scores
     from endowave_cl.render import render
-    from endowave_cl.run_io import load_run, run_world_scale
-    from endowave_cl.checkpoint import load_newest_good_checkpoint
+    from endowave_cl.run_io import load_run
     from endowave_cl.runtime import get_runtime
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -56,7 +55,6 @@ def main(argv=None) -> int:
             seed, deformation = int(p["seed"]), float(p["deformation"])
         except (OSError, ValueError, KeyError, TypeError):
             raise EndowaveError(f"{info_file}: not a synthetic scene's description (data/synth.py)") from None
-        _, state = load_newest_good_checkpoint(run.path, log=lambda m: None)
     except EndowaveError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -64,11 +62,11 @@ def main(argv=None) -> int:
     train_times = np.array(sorted(float(sc.frames[k].time) for k in sc.train_indices))   # [T]
     rt = get_runtime()
     params = upload(rt, run.gaussians)
-    groups = {}   # distance (spacings) -> {"model": [], "model_masked": [], "crossfade": [], "s": []}
+    groups = {}   # distance (spacings) -> {figure: [one value per time]}
     with tempfile.TemporaryDirectory() as tmp:
         dense_path = make_synthetic_scene(os.path.join(tmp, "dense"), width=width, height=height,
                                           frames=(frames - 1) * F + 1, seed=seed, deformation=deformation)
-        dense = load_scene(dense_path, downscale=run.cfg.downscale, world_scale=run_world_scale(state, run.checkpoint))
+        dense = load_scene(dense_path, downscale=run.cfg.downscale, world_scale=sc.world_scale)   # the run's units
         by_time = {round(float(f.time) * (frames - 1), 9): f for f in sc.frames}
         for j, f in enumerate(dense.frames):
             if j % F == 0 and sc.frames[j // F].index in sc.train_indices:

@@ -374,8 +374,8 @@ def pair_time(scene, pair, s: float) -> float:
 
 class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair,
-    then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly, or with by_time in proportion to the
-    time it spans, so that every moment of the sequence gets the same share of in-between steps
+    then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly, or with
+    by_time in proportion to the time it spans, so that every moment of the sequence gets the same share of in-between steps
     (where a held-out frame splits the training frames, the pair around it spans twice the time of
     its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
     into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
