@@ -546,3 +546,97 @@ def test_draw_fraction_distributions():
     assert abs(np.mean((s >= 0.25) & (s <= 0.75)) - 0.75) < 0.01
     u = np.array([draw_fraction(rng, "uniform") for _ in range(40000)])
     assert abs(np.mean((u >= 0.25) & (u <= 0.75)) - 0.5) < 0.01
+
+
+# ------------------------------------------------------------------ curved paths (between_path)
+def _parabola(t):
+    """[2]: where a point on an accelerating path is at time t (px); at the times i / 4 of
+    _accelerating_scene's frames, whole pixels: (0, 0), (1, -1), (3, -1), (6, 0), (10, 2)."""
+    i = 4.0 * t
+    return np.float64([0.5, -1.5]) * i + np.float64([0.5, 0.5]) * i * i
+
+
+def test_path_displacement_follows_the_parabola():
+    """path_displacement through three positions at unequal time steps gives the point's exact
+    place on its parabola at every fraction, from either frame of the pair; without an outer
+    flow, or with one on the same side in time, it is the straight s flow."""
+    from endowave_cl.train.between import path_displacement
+    H, W = 3, 4
+    f = lambda v: np.broadcast_to(np.float32(v), (H, W, 2)).copy()          # noqa: E731
+    for t0, t1, t_out in ((0.3, 0.8, 0.05), (0.8, 0.3, 1.0), (0.2, 0.6, -0.6)):
+        flow, outer = f(_parabola(t1) - _parabola(t0)), f(_parabola(t_out) - _parabola(t0))
+        for s in (0.0, 0.25, 0.5, 0.9, 1.0):
+            got = path_displacement(flow, s, t1 - t0, outer, t_out - t0)
+            want = _parabola(t0 + s * (t1 - t0)) - _parabola(t0)
+            np.testing.assert_allclose(got, f(want), atol=1e-5)
+    flow, outer = f([2.0, -1.0]), f([5.0, 5.0])
+    np.testing.assert_array_equal(path_displacement(flow, 0.25, 0.5), np.float32(0.25) * flow)
+    np.testing.assert_array_equal(path_displacement(flow, 0.25, 0.5, outer, 0.7), np.float32(0.25) * flow)
+
+
+def test_pair_bend_finds_the_frames_beyond_the_pair():
+    """pair_bend: the first frame's flow to the training frame before the pair and the second's to
+    the one after it, per source and for the fused flows, with their time offsets; a side with no
+    adjoining pair stays None, and a pair with neither has no bend."""
+    from types import SimpleNamespace
+    from endowave_cl.train.between import pair_bend
+    times = [0.0, 0.1, 0.3, 0.4, 0.7]
+    scene = SimpleNamespace(frames=[SimpleNamespace(time=t) for t in times])
+
+    def pair(a, b, tag):
+        return SimpleNamespace(src=a, dst=b, flow=np.full((2, 2, 2), tag, np.float32),
+                               flow_bw=np.full((2, 2, 2), -tag, np.float32))
+
+    pairs = [pair(0, 1, 1.0), pair(1, 2, 2.0), pair(2, 3, 3.0), pair(4, 4, 9.0)]
+    extra = {id(p): pair(p.src, p.dst, 10 * p.flow[0, 0, 0]) for p in pairs}
+    sources = lambda p: [p, extra[id(p)]]                                      # noqa: E731
+    fused = lambda i: (pairs[i].flow + 0.5, pairs[i].flow_bw - 0.5)           # noqa: E731
+    b = pair_bend(scene, pairs, 1, sources, fused)
+    assert (b.span, b.before_span, b.after_span) == pytest.approx((0.2, -0.1, 0.1))
+    assert [x[0, 0, 0] for x in b.before] == [-1.0, -10.0]         # frame 1 -> frame 0, per source
+    assert [x[0, 0, 0] for x in b.after] == [3.0, 30.0]            # frame 2 -> frame 3, per source
+    assert b.fused[0][0, 0, 0] == -1.5 and b.fused[1][0, 0, 0] == 3.5
+    first = pair_bend(scene, pairs, 0, sources)
+    assert first.before == [None, None] and first.after[0][0, 0, 0] == 2.0 and first.fused == (None, None)
+    last = pair_bend(scene, pairs, 2, sources)
+    assert last.before[1][0, 0, 0] == -20.0 and last.after == [None, None]
+    assert pair_bend(scene, pairs, 3, sources) is None
+
+
+def _accelerating_scene(H=40, W=56):
+    """Frames 0..4 of a texture on the path _parabola at times i / 4; frame 2 held out. Returns
+    (scene, pairs in frame order) with exact translation flows."""
+    from endowave_cl.camera import Camera
+    from endowave_cl.data.flow import FlowPair
+    from endowave_cl.data.scene import Frame, Scene
+    tex = _textured(H, W)
+    cam = Camera(width=W, height=H, fx=50.0, fy=50.0, cx=W / 2, cy=H / 2, viewmat=np.eye(4, dtype=np.float32))
+    times = [i / 4 for i in range(5)]
+    frames = [Frame(i, t, _shifted(tex, *_parabola(t), H, W), None, None, cam) for i, t in enumerate(times)]
+    scene = Scene(path=None, frames=frames, train_indices=[0, 1, 3, 4], test_indices=[2], near=0.1, far=10.0,
+                  width=W, height=H, has_depth=False, has_masks=False)
+    ones = np.ones((H, W), np.float32)
+
+    def flow_pair(a, b):
+        d = np.broadcast_to(np.float32(_parabola(times[b]) - _parabola(times[a])), (H, W, 2)).copy()
+        return FlowPair(a, b, d, ones.copy(), -d, ones.copy())
+
+    return scene, [flow_pair(0, 1), flow_pair(1, 3), flow_pair(3, 4)]
+
+
+def test_between_target_on_curved_paths_is_the_held_out_frame():
+    """On a texture that speeds up, the pair around the held-out frame bent by its neighbours
+    predicts that frame (backward warps, and pushed along the fused flows); the straight paths
+    miss it by the acceleration's share, half a pixel each way here."""
+    from endowave_cl.train.between import between_target, consistent_flows, pair_bend
+    scene, pairs = _accelerating_scene()
+    fused = lambda i: consistent_flows([pairs[i]])                            # noqa: E731
+    bend = pair_bend(scene, pairs, 1, lambda p: [p], fused)
+    truth = scene.frames[2].image
+    inner = (slice(8, -8), slice(8, -8))
+    for kw in (dict(), dict(flow_splat=True, splat="reverse", push="fused")):
+        curved = between_target(scene, pairs[1], 0.5, sampler="cubic", bend=bend, **kw)[0]
+        straight = between_target(scene, pairs[1], 0.5, sampler="cubic", **kw)[0]
+        err_curved = np.abs(curved[inner] - truth[inner]).mean()
+        np.testing.assert_allclose(curved[inner], truth[inner], atol=2e-3)
+        assert np.abs(straight[inner] - truth[inner]).mean() > 5 * err_curved

@@ -678,6 +678,36 @@ def _between_s(scene, rt, tmp_path):
         validate_config(TrainConfig(between_s="middle"), "config.json")
 
 
+def _between_path(scene, rt, tmp_path):
+    """between_path: "quadratic" bends the drawn target's paths with the pair's Bend (the flows to
+    the training frames beyond a pair with a neighbour on both sides), which changes the target on
+    the tiny scene's motion; "linear" draws the straight target; other names are refused by name."""
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.between import between_target, pair_bend
+    from endowave_cl.train.config import TrainConfig, validate_config
+    images = {}
+    for path in ("linear", "quadratic"):
+        tr = _trainer(scene, rt, tmp_path / path, iterations=0, between_prob=1.0, between_path=path)
+        b = tr._between
+        n = len(b.pairs)
+        seed = next(x for x in range(100) if 0 < int(np.random.default_rng(x).integers(n)) < n - 1)
+        rng = np.random.default_rng(seed)
+        k = int(rng.integers(n))
+        s = float(rng.uniform(0.0, 1.0))
+        _, _, dev = b.draw(np.random.default_rng(seed))
+        bend = None
+        if path == "quadratic":
+            fused = b._fused if tr.cfg.between_flow_splat and tr.cfg.between_push == "fused" else None
+            bend = pair_bend(scene, b.pairs, k, lambda p: [p, *b.extra(p)], fused)
+            assert bend.before[0] is not None and bend.after[0] is not None
+        want = between_target(scene, b.pairs[k], s, bend=bend, **_target_kw(tr))[0]
+        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
+        images[path] = dev.image.get()
+    assert np.abs(images["linear"] - images["quadratic"]).max() > 1e-3
+    with pytest.raises(EndowaveError, match="between_path"):
+        validate_config(TrainConfig(between_path="cubic"), "config.json")
+
+
 def _between_sampler(scene, rt, tmp_path):
     """between_sampler: the drawn in-between target samples the frames with that sampler."""
     from endowave_cl.train.between import between_target
@@ -943,6 +973,7 @@ CHECKS = {
     "between_sampler": _between_sampler,
     "between_by_time": _between_by_time,
     "between_s": _between_s,
+    "between_path": _between_path,
     "flow_anneal_final": _flow_anneal_final,
     "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,

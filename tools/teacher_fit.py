@@ -6,7 +6,8 @@ finding 28).
 For every test frame k between training frames k - 1 and k + 1 it prints PSNR (dB) of: the model
 against the real frame; the run's in-between target at s = 0.5 (train/between.py between_target
 with the run's own keys, the flows estimated as training estimates them, flow_max_pixels
-included, and the model's motion) against the real frame; the model against that target; the
+included, the pair's paths bent by the training frames beyond it with between_path "quadratic", and
+the model's motion) against the real frame; the model against that target; the
 cross-fade of the model's renders at k - 1 and k + 1 against the real frame and against the
 model at k; the neighbour mean; and the model at k - 1 and k + 1.
 """
@@ -28,7 +29,7 @@ def main(argv=None) -> int:
     from endowave_cl.render import render
     from endowave_cl.run_io import load_run
     from endowave_cl.runtime import get_runtime
-    from endowave_cl.train.between import between_target
+    from endowave_cl.train.between import bend_around, between_target
     from endowave_cl.train.config import between_flow_methods
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1 or argv[0].startswith("-"):
@@ -64,11 +65,14 @@ def main(argv=None) -> int:
         t = 0.5 * (float(f0.time) + float(f1.time))
         disp = draw(f0.camera, t, float(f0.time))["flow"]
         fwd = (draw(f0.camera, float(f0.time), t)["flow"], draw(f1.camera, float(f1.time), t)["flow"])
-        extra = [flows[m] for m in between_flow_methods(c) if m != c.flow_method]
-        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler, extra,
-                                        disp, c.between_model, c.between_fuse,
+        order = [c.flow_method] + [m for m in between_flow_methods(c) if m != c.flow_method]
+        bend = (bend_around(sc, [flows[m] for m in order], order, lambda a, b, m: est(sc.frames[a].image, sc.frames[b].image, m),
+                            c.between_flow_splat and c.between_push == "fused")
+                if c.between_path == "quadratic" else None)
+        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler,
+                                        [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
                                         fwd if c.between_model_splat else None, c.between_flow_splat,
-                                        c.between_splat, c.between_push)[0], 0, 1)
+                                        c.between_splat, c.between_push, bend=bend)[0], 0, 1)
         m, m0, m1 = (draw(x.camera, x.time)["image"] for x in (f, f0, f1))
         cross = 0.5 * (m0 + m1)
         row = [psnr(m, f.image), psnr(target, f.image), psnr(m, target), psnr(cross, f.image), psnr(m, cross),

@@ -15,7 +15,8 @@ sets of frames and scored against the real frame (PSNR, dB):
 
 Each variant changes in-between keys of the run's config (between_fuse, between_flow_splat,
 between_splat, between_push, between_model, between_model_splat, between_sampler, between_two_flow,
-between_flows); the model itself is the run's.  Prints the model's own render too.
+between_flows, between_path: with "quadratic" the flows to the nearest training frames beyond the pair
+are estimated here too); the model itself is the run's.  Prints the model's own render too.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 KEYS = ("between_fuse", "between_flow_splat", "between_splat", "between_push", "between_model", "between_model_splat",
-        "between_sampler", "between_two_flow", "between_flows")
+        "between_sampler", "between_two_flow", "between_flows", "between_path")
 
 
 def main(argv=None) -> int:
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     from endowave_cl.render import render
     from endowave_cl.run_io import load_run
     from endowave_cl.runtime import get_runtime
-    from endowave_cl.train.between import between_target
+    from endowave_cl.train.between import bend_around, between_target
     from endowave_cl.train.config import apply_values, between_flow_methods
     try:
         run = load_run(a.run)
@@ -70,6 +71,14 @@ def main(argv=None) -> int:
             "triplets": [k for k in range(1, len(sc.frames) - 1) if {k - 1, k, k + 1} <= train][::3]}
     print(f"{a.run}: step {run.step}, {len(run.gaussians)} Gaussians; load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; s = 0.5")
+    cache = {}
+
+    def estimated(i, j, m):
+        """frame i's flow to frame j by estimator m, estimated once"""
+        if (i, j, m) not in cache:
+            cache[(i, j, m)] = estimate_flow(sc.frames[i].image, sc.frames[j].image, m)
+        return cache[(i, j, m)]
+
     for set_name, frames in sets.items():
         scores = {name: [] for name in ["model", *variants]}
         for k in frames:
@@ -84,11 +93,14 @@ def main(argv=None) -> int:
             fwd = (motion(f0.camera, float(f0.time), t), motion(f1.camera, float(f1.time), t))
             scores["model"].append(psnr(render(rt, params, f.camera, f.time).host()["image"], f.image))
             for name, c in variants.items():
-                extra = [flows[m] for m in between_flow_methods(c) if m != c.flow_method]
-                image = between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler, extra,
-                                       disp, c.between_model, c.between_fuse,
+                order = [c.flow_method] + between_flow_methods(c)
+                bend = (bend_around(sc, [flows[m] for m in order], order, estimated,
+                                    c.between_flow_splat and c.between_push == "fused")
+                        if c.between_path == "quadratic" else None)
+                image = between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler,
+                                       [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
                                        fwd if c.between_model_splat else None, c.between_flow_splat,
-                                       c.between_splat, c.between_push)[0]
+                                       c.between_splat, c.between_push, bend=bend)[0]
                 scores[name].append(psnr(np.clip(image, 0, 1), f.image))
         print(f"{set_name} ({len(frames)} frames: {' '.join(map(str, frames))})")
         for name, v in scores.items():

@@ -61,12 +61,22 @@ pushes the same thing three times: ``between_push = "fused"`` pushes the frames 
 estimators' flows fused per pixel by how well each returns to its start (``consistent_flows``:
 forward-backward error), which is as good a teacher on the pulling frames at a third of the splats
 (docs/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per pair.
+
+Curved paths (``between_path = "quadratic"``): the flows above move every pixel at constant
+velocity between the pair's frames.  Tissue that is pulled speeds up and slows down, and the
+training frames on either side of the pair say how: the first frame's flow to the training frame
+before it, and the second frame's flow to the one after it.  Each pixel then moves along the
+parabola through its three positions (path_displacement, as quadratic video interpolation does,
+Xu et al., NeurIPS 2019), in every warp and push above; a side with no training frame beyond the
+pair (a sequence end, another camera) keeps the straight path.  The bending flows are made once per
+pair (Bend).
 """
 from __future__ import annotations
 
 import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
@@ -97,9 +107,103 @@ PUSH_MODES = ("fused", "each")
 # consistent_flows: the forward-backward error (px) at which an estimator's weight falls by a
 # factor e against the most consistent one's
 PUSH_TAU = 1.0
+# how a pixel moves between a pair's frames (between_path): at constant velocity along the pair's
+# flow, or along the parabola through its positions in the pair's frames and the training frame
+# beyond the pair on its own side (Bend)
+PATHS = ("linear", "quadratic")
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
+
+
+def path_displacement(flow: np.ndarray, s: float, span: float, outer: Optional[np.ndarray] = None,
+                      outer_span: float = 0.0) -> np.ndarray:
+    """[H, W, 2]: where a frame's pixels are, relative to where they start, at fraction s of the
+    time span (signed) to the pair's other frame; flow [H, W, 2] their displacement at the end of
+    span.  outer [H, W, 2]: their displacement to a frame outer_span away on the other side in time
+    (of the opposite sign to span); with it the pixel moves along the parabola through its three
+    positions (Lagrange's form through tau = 0, span and outer_span, at tau = s span), without it
+    s flow."""
+    flow = np.asarray(flow, np.float32)
+    if outer is None or outer_span * span >= 0.0:
+        return np.float32(s) * flow
+    tau = s * span
+    a = tau * (tau - outer_span) / (span * (span - outer_span))           # weight of flow
+    b = tau * (tau - span) / (outer_span * (outer_span - span))           # weight of outer
+    return np.float32(a) * flow + np.float32(b) * np.asarray(outer, np.float32)
+
+
+@dataclass
+class Bend:
+    """What bends a pair's paths into parabolas (between_path "quadratic", module docstring).
+    span: t_k' - t_k; before_span: t_before - t_k (< 0), after_span: t_after - t_k' (> 0).
+    before[h] / after[h] [H, W, 2] or None: per flow source h (between_target's pair, then its
+    extra), the displacement of frame k's pixels to the training frame before the pair and of
+    frame k''s pixels to the one after it; fused: the same of consistent_flows (between_push
+    "fused"), or (None, None).  None marks a side with no such frame: that side's path is straight."""
+    span: float
+    before_span: float
+    after_span: float
+    before: List[Optional[np.ndarray]]
+    after: List[Optional[np.ndarray]]
+    fused: Tuple[Optional[np.ndarray], Optional[np.ndarray]] = (None, None)
+
+    def paths(self, flow: np.ndarray, flow_bw: np.ndarray, s: float, h: Optional[int] = None):
+        """(g0, g1) [H, W, 2] each: where frame k's and frame k''s pixels are at fraction s,
+        relative to where they start, for source h's flows (h None: the fused flows)."""
+        before, after = self.fused if h is None else (self.before[h], self.after[h])
+        return (path_displacement(flow, s, self.span, before, self.before_span),
+                path_displacement(flow_bw, 1.0 - s, -self.span, after, self.after_span))
+
+
+def pair_bend(scene, pairs: Sequence[object], index: int, sources, fused=None) -> Optional[Bend]:
+    """The Bend of pairs[index] (training pairs in frame order, as usable_pairs gives them), or None
+    where neither side has a training frame beyond the pair.  sources(pair) -> the FlowPairs of a
+    pair's frames, one per estimator in between_target's order; fused(i) -> consistent_flows of
+    pairs[i], or None when the frames are not pushed along fused flows."""
+    pair = pairs[index]
+    prev = pairs[index - 1] if index > 0 and pairs[index - 1].dst == pair.src else None
+    nxt = pairs[index + 1] if index + 1 < len(pairs) and pairs[index + 1].src == pair.dst else None
+    if prev is None and nxt is None:
+        return None
+    n = len(sources(pair))
+    before = [p.flow_bw for p in sources(prev)] if prev is not None else []
+    after = [p.flow for p in sources(nxt)] if nxt is not None else []
+    before = before if len(before) == n else [None] * n
+    after = after if len(after) == n else [None] * n
+    t = [float(scene.frames[i].time) for i in (pair.src, pair.dst)]
+    t_before = float(scene.frames[prev.src].time) if prev is not None else t[0]
+    t_after = float(scene.frames[nxt.dst].time) if nxt is not None else t[1]
+    fused_bend = (None, None)
+    if fused is not None:
+        fused_bend = (fused(index - 1)[1] if prev is not None else None,
+                      fused(index + 1)[0] if nxt is not None else None)
+    return Bend(t[1] - t[0], t_before - t[0], t_after - t[1], before, after, fused_bend)
+
+
+def bend_around(scene, sources: Sequence[object], methods: Sequence[str], flows_of, fused: bool = False) -> Optional[Bend]:
+    """The Bend of a pair of frames that need not be a training pair (tools that score a target at a
+    held-out frame): sources, the pair's FlowPairs (or alike: src, dst, flow, flow_bw) per estimator
+    in between_target's order, methods their estimators' names; flows_of(a, b, method) -> [H, W, 2],
+    frame a's flow to frame b.  The frames beyond the pair are the nearest training frames before its
+    first and after its second frame with the same camera; fused: bend the fused flows too."""
+    from types import SimpleNamespace
+    src, dst = sources[0].src, sources[0].dst
+    cam = scene.frames[src].camera
+    train = [i for i in scene.train_indices if _same_camera(scene.frames[i].camera, cam)]
+    before = max((i for i in train if i < src), default=None)
+    after = min((i for i in train if i > dst), default=None)
+    made = {(src, dst): list(sources)}
+
+    def pair(a, b):
+        made[(a, b)] = [SimpleNamespace(src=a, dst=b, flow=flows_of(a, b, m), flow_bw=flows_of(b, a, m)) for m in methods]
+        return made[(a, b)][0]
+
+    pairs = ([pair(before, src)] if before is not None else []) + [sources[0]]
+    pairs += [pair(dst, after)] if after is not None else []
+    index = 1 if before is not None else 0
+    return pair_bend(scene, pairs, index, lambda p: made[(p.src, p.dst)],
+                     (lambda i: consistent_flows(made[(pairs[i].src, pairs[i].dst)])) if fused else None)
 
 
 def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
@@ -155,7 +259,8 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
                    model_weight: float = 0.0, fuse: str = "agree",
                    model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                    flow_splat: bool = False, splat: str = "colour", push: str = "each",
-                   pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray, float]:
+                   pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                   bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
     where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
@@ -174,10 +279,12 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation).  push (PUSH_MODES):
     with flow_splat, "each" pushes every hypothesis's frames along its own flows, "fused" pushes
     them once along consistent_flows of all the hypotheses (pushed_flows: those flows when they
-    were made already), the fused backward prediction filling the rest."""
+    were made already), the fused backward prediction filling the rest.  bend: the pair's Bend
+    (pair_bend): every flow moves the pixels along parabolas instead of straight lines (the
+    two_flow backward warps excepted)."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat,
-                                     push, pushed_flows)
+                                     push, pushed_flows, bend)
     if model_disp is not None and model_weight > 0.0:
         # the Gaussians' means move linearly in time, so the displacement to the second frame is
         # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
@@ -195,14 +302,19 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
 
 def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra: Sequence[object], fuse: str,
                      flow_splat: bool, splat: str, push: str = "each",
-                     pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
+                     pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                     bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]): between_target's flow half, the frame at s predicted from
     the pair's flows alone (its arguments)."""
 
-    def backward(p):
-        """(W0, W1, ok): the frames sampled backward along one estimator's flows"""
+    def backward(item):
+        """(W0, W1, ok): the frames sampled backward along estimator h's flows"""
+        h, p = item
         if two_flow:
             d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
+        elif bend is not None:
+            g0, g1 = bend.paths(p.flow, p.flow_bw, s, h)
+            d0, d1 = -g0, -g1
         else:
             d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
         return _warp_pair(f0, f1, d0, d1, sampler)
@@ -211,7 +323,7 @@ def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra
     # their array work, so the host pool's threads use the cores the device leaves idle meanwhile
     sources = (pair, *extra)
     pool = _host_pool()
-    hyps = [(w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)) for w0, w1, ok in pool.map(backward, sources)]
+    hyps = [(w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)) for w0, w1, ok in pool.map(backward, enumerate(sources))]
     if flow_splat and push == "fused":
         if len(hyps) == 1:
             image, weight = hyps[0][3], hyps[0][2]
@@ -219,12 +331,16 @@ def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra
             image, weight = fused_interpolation([(w0, w1) for w0, w1, _, _ in hyps], s,
                                                 [ok for _, _, ok, _ in hyps], fuse)
         flow, flow_bw = consistent_flows(sources) if pushed_flows is None else pushed_flows
-        image = _splat(splat, f0, f1, np.float32(s) * flow, np.float32(1.0 - s) * flow_bw, s, sampler,
-                       image, image, image)[0]
+        g0, g1 = (bend.paths(flow, flow_bw, s) if bend is not None
+                  else (np.float32(s) * flow, np.float32(1.0 - s) * flow_bw))
+        image = _splat(splat, f0, f1, g0, g1, s, sampler, image, image, image)[0]
         return image, weight
     if flow_splat:
-        fwd = [(f0, s * np.asarray(p.flow, np.float32)) for p in sources]
-        bwd = [(f1, (1.0 - s) * np.asarray(p.flow_bw, np.float32)) for p in sources]
+        paths = [bend.paths(p.flow, p.flow_bw, s, h) if bend is not None
+                 else (s * np.asarray(p.flow, np.float32), (1.0 - s) * np.asarray(p.flow_bw, np.float32))
+                 for h, p in enumerate(sources)]
+        fwd = [(f0, g0) for g0, _ in paths]
+        bwd = [(f1, g1) for _, g1 in paths]
         pushes = list(pool.map(_push(sampler), fwd + bwd)) if splat == "reverse" else [None] * (2 * len(sources))
         for h, (w0, w1, ok, blend) in enumerate(hyps):
             blend, w0, w1 = _splat(splat, f0, f1, fwd[h][1], bwd[h][1], s, sampler, blend, w0, w1,
@@ -385,16 +501,20 @@ class BetweenSampler:
     rendered over the whole pair (G0 from the first frame to the second, G1 back) and kept for
     that many steps; the motion to s is s G0 and (1 - s) G1 (the means move linearly in time, so
     up to perspective: a few thousandths of a pixel on the pulling frames, docs/QUALITY.md finding
-    22).  0: both are rendered to s in every step that needs them."""
+    22).  0: both are rendered to s in every step that needs them.  path (PATHS): "quadratic" bends
+    every flow's paths with the pair's Bend (pair_bend, made once per pair)."""
 
     def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
                  extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
                  model_splat: bool = False, flow_splat: bool = False, splat: str = "colour",
-                 motion_refresh: int = 0, push: str = "each", s_distribution: str = "uniform"):
+                 motion_refresh: int = 0, push: str = "each", s_distribution: str = "uniform",
+                 path: str = "linear"):
         self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
         self.s_distribution = s_distribution
         self.model_splat, self.flow_splat, self.splat, self.push = model_splat, flow_splat, splat, push
         self._pushed: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}   # pair index -> consistent_flows
+        self.path = path
+        self._bends: Dict[int, Optional[Bend]] = {}                      # pair index -> pair_bend
         self.motion_refresh = int(motion_refresh)
         self._motion: Dict[int, Tuple[int, np.ndarray, np.ndarray]] = {}   # pair index -> (step, G0, G1)
         self.pairs = usable_pairs(scene, flows)
@@ -436,17 +556,27 @@ class BetweenSampler:
                 fwd = (np.float32(s) * g0, np.float32(1.0 - s) * g1)
             elif self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
-        pushed = None
-        if self.flow_splat and self.push == "fused":
-            if index not in self._pushed:
-                self._pushed[index] = consistent_flows([pair, *self.extra(pair)])
-            pushed = self._pushed[index]
+        fused = self.flow_splat and self.push == "fused"
+        pushed = self._fused(index) if fused else None
+        bend = None
+        if self.path == "quadratic":
+            if index not in self._bends:
+                self._bends[index] = pair_bend(self.scene, self.pairs, index, lambda p: [p, *self.extra(p)],
+                                               self._fused if fused else None)
+            bend = self._bends[index]
         image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
                                           disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat,
-                                          self.push, pushed)
+                                          self.push, pushed, bend)
         if not weight.any():
             return None
         return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+
+    def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
+        """consistent_flows of pair index's estimators, made once."""
+        if index not in self._pushed:
+            pair = self.pairs[index]
+            self._pushed[index] = consistent_flows([pair, *self.extra(pair)])
+        return self._pushed[index]
 
     def _pair_motion(self, index: int, model_flow, step: int) -> Tuple[np.ndarray, np.ndarray]:
         """(G0, G1) [H, W, 2] each: the motion the model renders at pair index's first frame to its

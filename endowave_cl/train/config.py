@@ -97,6 +97,12 @@ class TrainConfig:
                                     # "triangular", twice as often at its middle and falling to
                                     # none at its two frames; it moves quality towards the
                                     # middle, not up (docs/QUALITY.md finding 30)
+    between_path: str = "linear"    # how the in-between target moves a pixel between the pair's
+                                    # frames (train/between.py PATHS): "linear", at constant
+                                    # velocity along the pair's flows; "quadratic", along the
+                                    # parabola through its positions in the pair's frames and in
+                                    # the training frame beyond the pair on each side (tissue that
+                                    # speeds up or slows down)
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
@@ -421,7 +427,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
-    from .between import FUSE_MODES, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES
+    from .between import FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES
+    if cfg.between_path not in PATHS:
+        raise EndowaveError(f"{source}: key 'between_path' must be one of {', '.join(PATHS)}, "
+                            f"got {cfg.between_path!r}")
     if cfg.between_s not in S_DISTRIBUTIONS:
         raise EndowaveError(f"{source}: key 'between_s' must be one of {', '.join(S_DISTRIBUTIONS)}, "
                             f"got {cfg.between_s!r}")

@@ -123,7 +123,7 @@ class Trainer:
                                        cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
                                        cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat,
                                        cfg.between_flow_splat, cfg.between_splat, cfg.between_motion_refresh,
-                                       cfg.between_push, cfg.between_s)
+                                       cfg.between_push, cfg.between_s, cfg.between_path)
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
