@@ -640,3 +640,24 @@ def test_between_target_on_curved_paths_is_the_held_out_frame():
         err_curved = np.abs(curved[inner] - truth[inner]).mean()
         np.testing.assert_allclose(curved[inner], truth[inner], atol=2e-3)
         assert np.abs(straight[inner] - truth[inner]).mean() > 5 * err_curved
+
+
+def test_bend_around_estimates_the_frames_beyond_a_held_out_pair():
+    """bend_around (the teacher tools' Bend of a pair that need not be a training pair): the flows
+    to the nearest training frames beyond the pair come from flows_of, per estimator, and give the
+    training pairs' own Bend; frames_beyond finds those frames."""
+    from endowave_cl.train.between import bend_around, consistent_flows, frames_beyond, pair_bend
+    scene, pairs = _accelerating_scene()
+    assert frames_beyond(scene, 1, 3) == (0, 4) and frames_beyond(scene, 0, 1) == (None, 3)
+    asked = []
+
+    def flows_of(a, b, m):
+        asked.append((a, b, m))
+        return np.broadcast_to(np.float32(_parabola(a / 4) - _parabola(b / 4)) * -1, pairs[0].flow.shape).copy()
+
+    got = bend_around(scene, [pairs[1], pairs[1]], ["x", "y"], flows_of, fused=True)
+    want = pair_bend(scene, pairs, 1, lambda p: [p, p], lambda i: consistent_flows([pairs[i]]))
+    assert {(a, b) for a, b, _ in asked} == {(0, 1), (1, 0), (3, 4), (4, 3)} and {m for *_, m in asked} == {"x", "y"}
+    assert (got.span, got.before_span, got.after_span) == pytest.approx((want.span, want.before_span, want.after_span))
+    for g, w in zip(got.before + got.after + list(got.fused), want.before + want.after + list(want.fused)):
+        np.testing.assert_allclose(g, w, atol=1e-5)

@@ -24,7 +24,9 @@ from endowave_cl.train.config import TrainConfig, load_config
 from endowave_cl.train.densify import densify_and_prune, logit
 
 QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0,
-             between_flows="")   # cheap trainers: no flow; checks of one in-between key use one estimator
+             between_flows="", between_path="linear")
+# cheap trainers: no flow; checks of one in-between key use one estimator and straight paths (the
+# between_path check draws both kinds)
 
 
 @pytest.fixture(scope="module")

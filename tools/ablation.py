@@ -8,7 +8,9 @@ steps kept at their share until the end instead of fading to half of it after de
 the late learning-rate decay (no_lr_anneal; both schedules start at densify_until: with fewer
 --iterations than that, give --set densify_until=N below it), with the in-between target's
 warps sampled bilinearly instead of bicubically (bilinear_between), with the in-between target
-fused from three flow estimators (fused_between: between_flows = dis_fine,farneback), or with the optional
+fused from three flow estimators (fused_between: between_flows = dis_fine,farneback), with the
+in-between target's pixels moving on straight paths instead of curved ones (straight_between:
+between_path = linear), or with the optional
 per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one scene, for each seed;
 evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the neighbour-mean and
 DIS-interpolation baselines (bilinear and bicubic warps), the rendered flow's EPE where the scene has gt_flow/,
@@ -36,7 +38,8 @@ VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wa
             "plain_adam": {"adam_skip_culled": "false"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"},
             "no_between_fade": {"between_anneal_final": "1"}, "no_lr_anneal": {"lr_anneal_final": "1"},
             "bilinear_between": {"between_sampler": "linear"},
-            "fused_between": {"between_flows": "dis_fine,farneback"}}
+            "fused_between": {"between_flows": "dis_fine,farneback"},
+            "straight_between": {"between_path": "linear"}}
 
 
 def depth_error(rt, params, scene) -> float:

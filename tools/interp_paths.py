@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     from endowave_cl.data.scene import load_scene
     from endowave_cl.errors import EndowaveError
     from endowave_cl.metrics import psnr
-    from endowave_cl.train.between import _same_camera, path_displacement
+    from endowave_cl.train.between import frames_beyond, path_displacement
     if a.method not in METHODS:
         ap.error(f"--method must be one of {', '.join(METHODS)}")
     try:
@@ -56,11 +56,8 @@ def main(argv=None) -> int:
         i0, i1, s = neighbours(sc, k)
         if i0 == i1:
             continue
-        cam = sc.frames[i0].camera
-        train = [i for i in sc.train_indices if _same_camera(sc.frames[i].camera, cam)]
-        b = max((i for i in train if i < i0), default=None)
-        after = min((i for i in train if i > i1), default=None)
-        if b is None or after is None or not _same_camera(sc.frames[i1].camera, cam):
+        b, after = frames_beyond(sc, i0, i1)
+        if b is None or after is None:
             continue
         im = {i: sc.frames[i].image for i in (b, i0, i1, after)}
         t = {i: float(sc.frames[i].time) for i in (b, i0, i1, after)}

@@ -130,7 +130,7 @@ def path_displacement(flow: np.ndarray, s: float, span: float, outer: Optional[n
     tau = s * span
     a = tau * (tau - outer_span) / (span * (span - outer_span))           # weight of flow
     b = tau * (tau - span) / (outer_span * (outer_span - span))           # weight of outer
-    return np.float32(a) * flow + np.float32(b) * np.asarray(outer, np.float32)
+    return cv2.addWeighted(flow, a, np.asarray(outer, np.float32), b, 0.0)   # one pass over the pixels
 
 
 @dataclass
@@ -181,6 +181,16 @@ def pair_bend(scene, pairs: Sequence[object], index: int, sources, fused=None) -
     return Bend(t[1] - t[0], t_before - t[0], t_after - t[1], before, after, fused_bend)
 
 
+def frames_beyond(scene, src: int, dst: int) -> Tuple[Optional[int], Optional[int]]:
+    """(before, after): the nearest training frames before frame src and after frame dst that share
+    frame src's camera (None where there is none, or where dst's camera differs)."""
+    cam = scene.frames[src].camera
+    if not _same_camera(scene.frames[dst].camera, cam):
+        return None, None
+    train = [i for i in scene.train_indices if _same_camera(scene.frames[i].camera, cam)]
+    return (max((i for i in train if i < src), default=None), min((i for i in train if i > dst), default=None))
+
+
 def bend_around(scene, sources: Sequence[object], methods: Sequence[str], flows_of, fused: bool = False) -> Optional[Bend]:
     """The Bend of a pair of frames that need not be a training pair (tools that score a target at a
     held-out frame): sources, the pair's FlowPairs (or alike: src, dst, flow, flow_bw) per estimator
@@ -189,10 +199,7 @@ def bend_around(scene, sources: Sequence[object], methods: Sequence[str], flows_
     first and after its second frame with the same camera; fused: bend the fused flows too."""
     from types import SimpleNamespace
     src, dst = sources[0].src, sources[0].dst
-    cam = scene.frames[src].camera
-    train = [i for i in scene.train_indices if _same_camera(scene.frames[i].camera, cam)]
-    before = max((i for i in train if i < src), default=None)
-    after = min((i for i in train if i > dst), default=None)
+    before, after = frames_beyond(scene, src, dst)
     made = {(src, dst): list(sources)}
 
     def pair(a, b):

@@ -97,12 +97,12 @@ class TrainConfig:
                                     # "triangular", twice as often at its middle and falling to
                                     # none at its two frames; it moves quality towards the
                                     # middle, not up (docs/QUALITY.md finding 30)
-    between_path: str = "linear"    # how the in-between target moves a pixel between the pair's
-                                    # frames (train/between.py PATHS): "linear", at constant
-                                    # velocity along the pair's flows; "quadratic", along the
+    between_path: str = "quadratic"  # how the in-between target moves a pixel between the pair's
+                                    # frames (train/between.py PATHS): "quadratic", along the
                                     # parabola through its positions in the pair's frames and in
                                     # the training frame beyond the pair on each side (tissue that
-                                    # speeds up or slows down)
+                                    # speeds up or slows down); "linear", at constant velocity
+                                    # along the pair's flows (docs/QUALITY.md finding 31)
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
