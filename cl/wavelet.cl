@@ -426,6 +426,213 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
     }
 }
 
+/* Row passes staged through local memory (conv_axis_rows, conv_axis_rows_bwd).  Along an image's
+ * rows (inner < CONV_RUN: a run spans positions) the border runs of conv_axis / conv_axis_bwd
+ * gather every tap with per-lane reflection (conv_gather8, v_conv_gather8): about 4 of a 320-pixel
+ * row's 60 runs, yet more than half of the pass's time.  Here one work-group takes one line of one
+ * output slot: it first copies its terms' input lines into local memory with the border already
+ * applied (conv_axis_rows: the reflected or zero samples R positions past each end; the adjoint:
+ * 2 R zeros past each end), after which every run of the line is an interior run of 8-wide loads.
+ * The values, the taps and their order are those of the unstaged kernels (a tap outside a
+ * zero-border line or an adjoint's line adds f 0, as the gathered paths do): the same results. */
+
+/* conv_run16 / conv_run8 on a staged line (local memory). */
+inline float8 load8_l(__local const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+}
+
+inline float8 conv_run8_l(__local const float *src, __global const float *f, int flen, int step) {
+    const int R = flen / 2;
+    float8 acc = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i)
+        acc += f[i] * load8_l(src + (i - R) * step);
+    return acc;
+}
+
+inline void conv_run16_l(__local const float *src, __global const float *f, int flen, int step,
+                         float8 *lo, float8 *hi) {
+    const int R = flen / 2;
+    float8 a = (float8)(0.0f), b = (float8)(0.0f);
+    for (int i = 0; i < flen; ++i) {
+        const float fi = f[i];
+        __local const float *p = src + (i - R) * step;
+        a += fi * load8_l(p);
+        b += fi * load8_l(p + 8);
+    }
+    *lo = a;
+    *hi = b;
+}
+
+/* Copies the input line of each of the group's nterm terms into l_lines (term c at c * plen):
+ * staged position e / inner - pad of the line, element k = e % inner, for e in [0, plen); a
+ * position outside [0, n) reads its reflection (reflect != 0) or 0.  One more float at
+ * nterm * plen holds 0 (conv_axis_rows_bwd points its lanes without a reflection there).  Ends
+ * with the barrier after which the staged lines may be read. */
+inline void stage_lines(__global const float *in, size_t slot, size_t line_off, __global const int *tt,
+                        int nterm, int n, int inner, int pad, int reflect, __local float *l_lines) {
+    const int lid = get_local_id(0), L = get_local_size(0);
+    const int len = n * inner, plen = (n + 2 * pad) * inner;
+    for (int c = 0; c < nterm; ++c) {
+        __global const float *line = in + TERM_SRC(tt, c) * slot + line_off;
+        __local float *dst = l_lines + c * plen + pad * inner;   /* position 0 */
+        for (int e = lid * 8; e < len; e += L * 8) {             /* the line itself, 8 at a time */
+            if (e + 8 <= len) {
+                const float8 v = load8(line + e);
+                dst[e] = v.s0; dst[e + 1] = v.s1; dst[e + 2] = v.s2; dst[e + 3] = v.s3;
+                dst[e + 4] = v.s4; dst[e + 5] = v.s5; dst[e + 6] = v.s6; dst[e + 7] = v.s7;
+            } else {
+                for (int j = e; j < len; ++j) dst[j] = line[j];
+            }
+        }
+        for (int b = lid; b < 2 * pad; b += L) {                 /* the pad positions past each end */
+            const int m = b < pad ? b - pad : n + b - pad;
+            const int src = reflect ? reflect_idx(m, n) : 0;
+            for (int k = 0; k < inner; ++k) dst[m * inner + k] = reflect ? line[src * inner + k] : 0.0f;
+        }
+    }
+    if (lid == 0) l_lines[nterm * plen] = 0.0f;
+    barrier(CLK_LOCAL_MEM_FENCE);
+}
+
+/* conv_axis for a row pass: the same arguments, and l_lines [max terms * (n + 2 R) * inner + 1]
+ * floats of local memory.  Range (L, outer, slots), work-groups (L, 1, 1): work-item l of the
+ * group of (o, t) computes the runs l, l + L, ... of line o of output slot t. */
+__kernel void conv_axis_rows(__global const float *in, __global float *out,
+                             __global const float *f, const int flen,
+                             const int outer, const int n, const int inner, const int zero_border,
+                             __global const int *terms, const int term_stride, __local float *l_lines) {
+    const int o = get_global_id(1);
+    const int t = get_global_id(2);
+    const int lid = get_local_id(0), L = get_local_size(0);
+    const int R = flen / 2;
+    const int len = n * inner, plen = (n + 2 * R) * inner;
+    const size_t slot = (size_t)outer * len;
+    __global const int *tt = terms + t * term_stride;
+    const int nterm = tt[0];
+    stage_lines(in, slot, (size_t)o * len, tt, nterm, n, inner, R, !zero_border, l_lines);
+    __global float *out_o = out + t * slot + (size_t)o * len;
+    for (int xi0 = lid * CONV_RUN; xi0 < len; xi0 += L * CONV_RUN) {
+        /* element xi reads staged[xi + R inner + (R - i) inner] for tap i */
+        if (xi0 + CONV_RUN <= len) {
+#if CONV_RUN == 16
+            float8 lo = (float8)(0.0f), hi = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                float8 a, b;
+                conv_run16_l(l_lines + c * plen + R * inner + xi0, f + TERM_FILTER(tt, c) * flen, flen, -inner,
+                             &a, &b);
+                lo = c ? lo + a : a;
+                hi = c ? hi + b : b;
+            }
+            store8(out_o + xi0, lo);
+            store8(out_o + xi0 + 8, hi);
+#else
+            float8 acc = (float8)(0.0f);
+            for (int c = 0; c < nterm; ++c) {
+                const float8 a = conv_run8_l(l_lines + c * plen + R * inner + xi0, f + TERM_FILTER(tt, c) * flen,
+                                             flen, -inner);
+                acc = c ? acc + a : a;
+            }
+            store8(out_o + xi0, acc);
+#endif
+        } else {
+            for (int xi = xi0; xi < len; ++xi) {
+                float acc = 0.0f;
+                for (int c = 0; c < nterm; ++c) {
+                    __local const float *src = l_lines + c * plen + R * inner + xi;
+                    __global const float *fc = f + TERM_FILTER(tt, c) * flen;
+                    float e = 0.0f;
+                    for (int i = 0; i < flen; ++i) e += fc[i] * src[(R - i) * inner];
+                    acc = c ? acc + e : e;
+                }
+                out_o[xi] = acc;
+            }
+        }
+    }
+}
+
+/* The reflection pass of conv_axis_rows_bwd for the 8 flat elements yi .. yi + 7 of the line: acc
+ * continued with the taps of each lane's reflected position (-y near the start, 2 (n - 1) - y near
+ * the end), in the order of v_conv_gather8's second pass; lanes without one read the staged zero
+ * (the gathered path adds f 0 there too).  src: the staged line (2 R zeros past each end), zero:
+ * the offset of the staged zero. */
+inline float8 v_reflect_pass8(float8 acc, __local const float *src, __global const float *f, int flen, int n,
+                              int inner, int yi, int zero) {
+    const int R = flen / 2;
+    const int8 e = (int8)(yi) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const int8 y = e / inner;
+    const int8 k = e - y * inner;
+    const int8 m2 = sel_i8((int8)(2 * (n - 1)) - y, -y, y <= (int8)(R));
+    const int8 has2 = (y != (int8)(0)) & (y != (int8)(n - 1)) & ((y <= (int8)(R)) | (y >= (int8)(n - 1 - R)));
+    /* staged index of tap 0: position m2 - R, 2 R zeros before position 0 */
+    const int8 base = sel_i8((int8)(zero), (m2 + (int8)(R)) * inner + k, has2);
+    const int8 step = sel_i8((int8)(0), (int8)(inner), has2);
+    for (int i = 0; i < flen; ++i) {
+        const int8 ix = base + step * (int8)(i);
+        const float8 v = (float8)(src[ix.s0], src[ix.s1], src[ix.s2], src[ix.s3],
+                                  src[ix.s4], src[ix.s5], src[ix.s6], src[ix.s7]);
+        acc += f[i] * v;
+    }
+    return acc;
+}
+
+/* conv_axis_bwd for a row pass of a line longer than the filter (n > 2 R + 1: at most one
+ * reflection per position): the same arguments, and l_lines [max terms * (n + 4 R) * inner + 1]
+ * floats of local memory; range and work-groups as conv_axis_rows.  Each run's own taps read the
+ * zero-padded staged line as interior runs do; the runs that hold a border position (y <= R or
+ * y >= n - 1 - R) then add their reflections' taps (v_reflect_pass8). */
+__kernel void conv_axis_rows_bwd(__global const float *v_out, __global float *v_in,
+                                 __global const float *f, const int flen,
+                                 const int outer, const int n, const int inner, const int accumulate,
+                                 __global const int *terms, const int term_stride, __local float *l_lines) {
+    const int o = get_global_id(1);
+    const int t = get_global_id(2);
+    const int lid = get_local_id(0), L = get_local_size(0);
+    const int R = flen / 2;
+    const int len = n * inner, plen = (n + 4 * R) * inner;
+    const size_t slot = (size_t)outer * len;
+    __global const int *tt = terms + t * term_stride;
+    const int nterm = tt[0];
+    stage_lines(v_out, slot, (size_t)o * len, tt, nterm, n, inner, 2 * R, 0, l_lines);
+    const int zero = nterm * plen;
+    __global float *vi = v_in + t * slot + (size_t)o * len;
+    for (int yi0 = lid * CONV_RUN; yi0 < len; yi0 += L * CONV_RUN) {
+        /* element yi reads staged[yi + 2 R inner + (i - R) inner] for tap i */
+        if (yi0 + CONV_RUN <= len) {
+            const int border = yi0 < (R + 1) * inner || yi0 + CONV_RUN - 1 >= (n - 1 - R) * inner;
+            for (int h = 0; h < CONV_RUN; h += 8) {
+                float8 acc = (float8)(0.0f);
+                for (int c = 0; c < nterm; ++c) {
+                    __local const float *line = l_lines + c * plen;
+                    __global const float *fc = f + TERM_FILTER(tt, c) * flen;
+                    float8 e = conv_run8_l(line + 2 * R * inner + yi0 + h, fc, flen, inner);
+                    if (border) e = v_reflect_pass8(e, line, fc, flen, n, inner, yi0 + h, zero - c * plen);
+                    acc = c ? acc + e : e;
+                }
+                if (accumulate) acc += load8(vi + yi0 + h);
+                store8(vi + yi0 + h, acc);
+            }
+        } else {
+            for (int yi = yi0; yi < len; ++yi) {
+                const int y = yi / inner, k = yi - y * inner;
+                float acc = 0.0f;
+                for (int c = 0; c < nterm; ++c) {
+                    __local const float *line = l_lines + c * plen;
+                    __global const float *fc = f + TERM_FILTER(tt, c) * flen;
+                    float e = 0.0f;
+                    for (int i = 0; i < flen; ++i) e += fc[i] * line[yi + 2 * R * inner + (i - R) * inner];
+                    const int has2 = y != 0 && y != n - 1 && (y <= R || y >= n - 1 - R);
+                    const int m2 = y <= R ? -y : 2 * (n - 1) - y;
+                    for (int i = 0; i < flen; ++i)
+                        e += fc[i] * (has2 ? line[(m2 + R + i) * inner + k] : 0.0f);
+                    acc = c ? acc + e : e;
+                }
+                if (accumulate) acc += vi[yi];
+                vi[yi] = acc;
+            }
+        }
+    }
+}
+
 /* The resampling kernels also compute RS_RUN = 8 consecutive flat elements (j * inner + k) of a
  * line per work-item: one integer division by inner per run instead of two per element (a scalar
  * idiv each on PoCL), and, when the run stays in one j (the column passes, inner = W C), one
@@ -537,44 +744,57 @@ __kernel void resample_axis_bwd(__global const float *v_out, __global float *v_i
 }
 
 /* resample_axis and resample_axis_bwd for a short inner axis (the row passes of an image,
- * inner = C < RS_RUN): work-item (i, o) computes the inner elements of one position i of line o,
- * so that consecutive work-items are consecutive positions (no division by inner at all).  The
- * same terms in the same order as the kernels above. */
+ * inner = C < RS_RUN): work-item (u, o) computes the inner elements of RS_ROW_POS consecutive
+ * positions of line o, from position u * RS_ROW_POS on (no division by inner at all; one position
+ * per work-item left PoCL's per-work-item cost larger than the work), with inner the build option
+ * RS_INNER, so that its loops unroll.  The same terms in the same order as the kernels above. */
+#define RS_ROW_POS 8
+#ifdef RS_INNER   /* the row kernels' inner as a constant (endowave_cl/wavelet/ops.py sets it) */
+#define RS_ROW_INNER RS_INNER
+#else
+#define RS_ROW_INNER inner
+#endif
 __kernel void resample_axis_rows(__global const float *in, __global float *out,
                                  const int outer, const int n_in, const int n_out, const int inner) {
-    const int j = get_global_id(0);
+    const int j0 = get_global_id(0) * RS_ROW_POS;
     const int o = get_global_id(1);
-    if (j >= n_out || o >= outer) return;
-    int r;
-    const int i0 = rs_source(j, &r);
-    __global const float *src = in + ((size_t)o * n_in + i0) * inner;
-    __global float *dst = out + ((size_t)o * n_out + j) * inner;
-    const float w = (float)r / (float)RQ;
-    for (int k = 0; k < inner; ++k) {
-        float v = src[k];
-        if (r > 0) v = (1.0f - w) * v + w * src[inner + k];
-        dst[k] = v;
+    if (j0 >= n_out || o >= outer) return;
+    const int j1 = j0 + RS_ROW_POS < n_out ? j0 + RS_ROW_POS : n_out;
+    for (int j = j0; j < j1; ++j) {
+        int r;
+        const int i0 = rs_source(j, &r);
+        __global const float *src = in + ((size_t)o * n_in + i0) * RS_ROW_INNER;
+        __global float *dst = out + ((size_t)o * n_out + j) * RS_ROW_INNER;
+        const float w = (float)r / (float)RQ;
+        for (int k = 0; k < RS_ROW_INNER; ++k) {
+            float v = src[k];
+            if (r > 0) v = (1.0f - w) * v + w * src[RS_ROW_INNER + k];
+            dst[k] = v;
+        }
     }
 }
 
 __kernel void resample_axis_bwd_rows(__global const float *v_out, __global float *v_in,
                                      const int outer, const int n_in, const int n_out, const int inner,
                                      const int accumulate) {
-    const int i = get_global_id(0);
+    const int i0 = get_global_id(0) * RS_ROW_POS;
     const int o = get_global_id(1);
-    if (i >= n_in || o >= outer) return;
-    const int2 jr = rs_targets(i, n_out);
-    __global const float *vo = v_out + (size_t)o * n_out * inner;
-    __global float *vi = v_in + ((size_t)o * n_in + i) * inner;
-    for (int k = 0; k < inner; ++k) {
-        float acc = 0.0f;
-        for (int t = 0; t < RS_JMAX; ++t) {
-            const int j = jr.s0 + t;
-            if (j > jr.s1) break;
-            if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * inner + k];
+    if (i0 >= n_in || o >= outer) return;
+    const int i1 = i0 + RS_ROW_POS < n_in ? i0 + RS_ROW_POS : n_in;
+    __global const float *vo = v_out + (size_t)o * n_out * RS_ROW_INNER;
+    for (int i = i0; i < i1; ++i) {
+        const int2 jr = rs_targets(i, n_out);
+        __global float *vi = v_in + ((size_t)o * n_in + i) * RS_ROW_INNER;
+        for (int k = 0; k < RS_ROW_INNER; ++k) {
+            float acc = 0.0f;
+            for (int t = 0; t < RS_JMAX; ++t) {
+                const int j = jr.s0 + t;
+                if (j > jr.s1) break;
+                if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * RS_ROW_INNER + k];
+            }
+            if (accumulate) acc += vi[k];
+            vi[k] = acc;
         }
-        if (accumulate) acc += vi[k];
-        vi[k] = acc;
     }
 }
 

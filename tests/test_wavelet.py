@@ -107,6 +107,51 @@ def test_conv_axis_stack_matches_reference(rt, conv_run, shape, axis, border):
         np.testing.assert_array_equal(got[t], sum(one[1:], one[0]))
 
 
+# row passes (inner < CONV_RUN), which the staged kernels take: lines shorter than the filter (the
+# forward reflects repeatedly, the adjoint keeps the unstaged kernel), lengths that end in a short
+# run, inner 1 to 9
+ROW_CASES = [((5, 7, 3), 1), ((33, 21, 3), 1), ((7, 41, 5), 1), ((3, 61), 1), ((1, 9, 2), 1), ((40, 37, 9), 1),
+             ((6, 5, 4, 2), 2), ((12, 100, 1), 1), ((4, 15, 3), 1), ((2, 2, 3), 1)]
+
+
+@pytest.mark.parametrize("shape,axis", ROW_CASES)
+@pytest.mark.parametrize("flen", [3, 13, 17])
+@pytest.mark.parametrize("group", [1, 5, 64])
+def test_staged_row_passes_give_the_unstaged_bits(rt, conv_run, monkeypatch, shape, axis, flen, group):
+    """conv_axis_rows / conv_axis_rows_bwd (a row pass's lines staged in local memory, one
+    work-group of `group` work-items per line) give the unstaged kernels' bits: both borders, the
+    adjoint alone and accumulating, and a stack whose output slots have one to three terms."""
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    staged = []
+    plain = ops._staged_rows_floats
+    monkeypatch.setattr(ops, "_staged_rows_floats", lambda *a: staged.append(plain(*a)) or staged[-1])
+    x, y, f = rand(shape, flen), rand(shape, flen + 1), rand(flen, flen + 2)
+    xs, fs = rand((3,) + shape, flen + 3), rand((3, flen), flen + 4)
+    back = tuple(tuple((t, g) for t, terms in enumerate(STACK_TERMS) for s2, g in terms if s2 == s) for s in range(3))
+    ys = rand((len(STACK_TERMS),) + shape, flen + 5)
+
+    def run_all():
+        out = dev(rt, x)
+        ops.conv_axis_bwd(rt, dev(rt, y), f, axis, out=out, accumulate=True)
+        return [ops.conv_axis(rt, dev(rt, x), f, axis).get(),
+                ops.conv_axis(rt, dev(rt, x), f, axis, border="zero").get(),
+                ops.conv_axis_bwd(rt, dev(rt, y), f, axis).get(), out.get(),
+                ops.conv_axis_stack(rt, dev(rt, xs), fs, STACK_TERMS, axis + 1).get(),
+                ops.conv_axis_stack_bwd(rt, dev(rt, ys), fs, back, axis + 1).get()]
+    monkeypatch.setattr(ops, "STAGED_ROWS", True)
+    got = run_all()
+    if int(np.prod(shape[axis + 1:])) >= conv_run:   # runs within one position: no staging
+        assert not any(staged)
+    else:
+        assert staged[1] and staged[2] and staged[4]   # in the order of run_all's calls
+        if shape[axis] > flen:   # the adjoint stages lines longer than the filter
+            assert staged[0] and staged[3] and staged[5]
+    monkeypatch.setattr(ops, "STAGED_ROWS", False)
+    for name, a, b in zip(("forward", "zero border", "adjoint", "accumulate", "stack", "stack adjoint"), got,
+                          run_all()):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
 @pytest.mark.parametrize("shape, axis", [((3, 5, 7, 3), 2), ((3, 33, 21, 3), 1), ((3, 33, 21, 3), 2),
                                          ((3, 2, 4, 1), 1), ((3, 1, 9, 2), 1), ((3, 70), 1)])
 def test_conv_axis_stack_adjoint(rt, conv_run, shape, axis):

@@ -253,6 +253,29 @@ def test_oclgrind_conv_stack_terms(rt, run, monkeypatch):
 
 
 @pytest.mark.oclgrind
+@pytest.mark.parametrize("group", [1, 4])
+def test_oclgrind_staged_row_passes(rt, group, monkeypatch):
+    # the row passes staged in local memory (conv_axis_rows / conv_axis_rows_bwd) with one and with
+    # four work-items per line (the barrier after staging), both borders, two-term slots, a line
+    # length that ends in a short run, the adjoint accumulating
+    monkeypatch.setattr(ops, "conv_run", lambda rt: ops.CONV_RUN_CPU)
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    f = np.random.default_rng(6).standard_normal((3, 13)).astype(np.float32)
+    terms = (((1, 2),), ((0, 0), (1, 1)))
+    back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+    x = np.random.default_rng(7).standard_normal((2, 3, 19, 3)).astype(np.float32)
+    for border in ("reflect", "zero"):
+        Ax = ops.conv_axis_stack(rt, dev(rt, x), f, terms, 2, border=border).get()
+        if border == "reflect":
+            np.testing.assert_allclose(Ax, F.conv_axis_stack(x, f, terms, 2), rtol=1e-5, atol=1e-5)
+    y = np.random.default_rng(8).standard_normal(Ax.shape).astype(np.float32)
+    Ax = ops.conv_axis_stack(rt, dev(rt, x), f, terms, 2).get()
+    out = dev(rt, x)
+    ATy = ops.conv_axis_stack_bwd(rt, dev(rt, y), f, back, 2, out=out, accumulate=True).get() - x
+    assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
+
+
+@pytest.mark.oclgrind
 def test_oclgrind_resample_runs_and_rows(rt):
     # both resampling layouts (short inner axis: a work-item per position; long: 8-element runs,
     # 8-wide in one sample) and their adjoints, accumulating, with a length not a multiple of 8

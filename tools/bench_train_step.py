@@ -14,7 +14,7 @@ frames and the frames splatted forward along them; with between_motion_refresh t
 timed both rendered afresh, as in the step that first draws a pair, and kept from an earlier step).
 
     python tools/bench_train_step.py [--gaussians 100000] [--runs 10] [--downscale 2] [--no-flow] [--no-wavelet]
-                                     [--checkpoint RUN/checkpoint_0003000.npz] [--adam-skip-culled] [--kernels [--top N]]
+                                     [--checkpoint RUN/checkpoint_0003000.npz] [--no-adam-skip-culled] [--kernels [--top N]]
 
 --checkpoint takes the Gaussians of a trained model instead (a real run's count, and Gaussians that
 live only part of the sequence: most of them are culled at any one time), with fresh Adam moments.
@@ -50,14 +50,16 @@ def main(argv=None):
     ap.add_argument("--full-sh", action="store_true",
                     help="per-part steps: the adjoint writes v_sh in full for Adam and the NaN guard "
                          "(the training step passes it as factors)")
-    ap.add_argument("--adam-skip-culled", action="store_true",
-                    help="Adam leaves the step's culled Gaussians alone (config key adam_skip_culled)")
+    ap.add_argument("--adam-skip-culled", action=argparse.BooleanOptionalAction, default=None,
+                    help="Adam leaves the step's culled Gaussians alone, and the steps render only the "
+                         "Gaussians alive at their time (config key adam_skip_culled; default: the "
+                         "config's, as training runs; --no-adam-skip-culled: every Gaussian)")
     ap.add_argument("--sh-degree", type=int, default=None,
                     help="the config's sh_degree (0..3; default: the config default, resolved for the scene)")
     ap.add_argument("--checkpoint", help="a trained model's checkpoint (.npz): its Gaussians instead of new ones")
     ap.add_argument("--no-select", action="store_true",
                     help="every step over every Gaussian (sets $ENDOWAVE_NO_SELECT); by default, with "
-                         "--adam-skip-culled, the steps render and differentiate only those alive at "
+                         "adam_skip_culled (the config default), the steps render and differentiate only those alive at "
                          "their time, as training does (ops/select.py)")
     ap.add_argument("--kernels", action="store_true",
                     help="also print each part's summed kernel time (OpenCL event profiling of the "
@@ -91,7 +93,7 @@ def main(argv=None):
         events = profile_launches(rt)   # before the trainer's first buffer
     cfg = TrainConfig(iterations=10**6, init_points=args.gaussians, use_flow=not args.no_flow,
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0,
-                      adam_skip_culled=args.adam_skip_culled)
+                      **({} if args.adam_skip_culled is None else {"adam_skip_culled": args.adam_skip_culled}))
     if args.sh_degree is not None:
         cfg.sh_degree = args.sh_degree
     if args.set:

@@ -58,6 +58,16 @@ def _launch(rt, kernel, total: int, *args) -> None:
 # (docs/PERFORMANCE.md, sixth pass); 8 on GPUs, the setting measured there
 CONV_RUN_CPU, CONV_RUN_GPU = 16, 8
 RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
+RS_ROW_POS = 8        # positions per work-item of resample_axis_rows / resample_axis_bwd_rows (RS_ROW_POS there)
+ROWS_RANGE = 8        # multiple of the row resampling kernels' range along a line
+# Row passes (a run spans positions: inner < CONV_RUN) stage their lines in local memory
+# (conv_axis_rows, conv_axis_rows_bwd): their border runs are then plain vector runs (docs/PERFORMANCE.md,
+# fourteenth pass).  STAGED_ROWS = False: the unstaged kernels everywhere (tests compare the two).
+STAGED_ROWS = True
+ROWS_GROUP_SIMT = 64    # work-items per line of the staged row passes on lock-step SIMD devices (GPUs);
+                        # elsewhere one (CPU drivers: a work-group's barrier and work-item loops cost
+                        # more than the line's runs share out, measured on PoCL)
+ROWS_LOCAL_SHARE = 0.5  # at most this share of the device's local memory for the staged lines
 
 
 def conv_run(rt) -> int:
@@ -154,12 +164,42 @@ def _conv_stack(rt, kname: str, x: cla.Array, f, terms: Terms, axis: int, out: O
     if tuple(out.shape) != shape:
         raise ValueError(f"out must be {shape}, got {out.shape}")
     run = conv_run(rt)
+    args = (x.data, out.data, farr.data, np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner),
+            np.int32(bool(flag)), table.data, np.int32(stride))
+    staged = _staged_rows_floats(rt, kname, n, inner, flen, max(len(t) for t in terms), run)
+    if staged:   # a row pass: one work-group per line, its input lines staged in local memory
+        import pyopencl as cl
+        group = rows_group(rt)
+        rt.launch(rt.kernel(KFILE, kname.replace("conv_axis", "conv_axis_rows"), [f"-DCONV_RUN={run}"]),
+                  (group, max(outer, 1), len(terms)), (group, 1, 1), *args, cl.LocalMemory(4 * staged))
+        return out
     items = -(-max(n * inner, 1) // run)
     rt.launch(rt.kernel(KFILE, kname, [f"-DCONV_RUN={run}"]),
-              (round_up(items, GROUP), max(outer, 1), len(terms)), None, x.data, out.data, farr.data,
-              np.int32(flen), np.int32(outer), np.int32(n), np.int32(inner), np.int32(bool(flag)),
-              table.data, np.int32(stride))
+              (round_up(items, GROUP), max(outer, 1), len(terms)), None, *args)
     return out
+
+
+def rows_group(rt) -> int:
+    """Work-items per line (one work-group) of the staged row passes on rt's device."""
+    caps = getattr(rt, "caps", None)
+    simt = bool(caps.simt) if caps is not None else bool(getattr(rt, "is_gpu", False))
+    return min(ROWS_GROUP_SIMT, rt.max_work_group_size) if simt else 1
+
+
+def _staged_rows_floats(rt, kname: str, n: int, inner: int, flen: int, nterm: int, run: int) -> int:
+    """Floats of local memory conv_axis_rows / conv_axis_rows_bwd (cl/wavelet.cl) stage for one line,
+    or 0 where the pass takes the unstaged kernel: where its runs stay within one position
+    (inner >= run: the column passes, whose border runs are whole vectors already), for an adjoint
+    line not longer than the filter (repeated reflections), or where the lines do not fit in
+    ROWS_LOCAL_SHARE of the device's local memory."""
+    if not STAGED_ROWS or inner >= run:
+        return 0
+    R = flen // 2
+    if kname == "conv_axis_bwd" and n <= 2 * R + 1:
+        return 0
+    pad = 2 * R if kname == "conv_axis_bwd" else R
+    floats = nterm * (n + 2 * pad) * inner + 1
+    return floats if 4 * floats <= ROWS_LOCAL_SHARE * rt.local_mem_size else 0
 
 
 def conv_axis_stack(rt, x: cla.Array, f, terms: Terms, axis: int, out: Optional[cla.Array] = None,
@@ -225,9 +265,10 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     shape = list(x.shape)
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
-    if inner < RS_RUN:   # short inner axis (an image's rows): one work-item per position
-        rt.launch(rt.kernel(KFILE, "resample_axis_rows", _resample_options(q)),
-                  (round_up(max(n_out, 1), GROUP), max(outer, 1)), None, x.data, out.data, np.int32(outer),
+    if inner < RS_RUN:   # short inner axis (an image's rows): RS_ROW_POS positions per work-item
+        rt.launch(rt.kernel(KFILE, "resample_axis_rows", _resample_options(q) + [f"-DRS_INNER={inner}"]),
+                  (round_up(-(-max(n_out, 1) // RS_ROW_POS), ROWS_RANGE), max(outer, 1)), None, x.data, out.data,
+                  np.int32(outer),
                   np.int32(n), np.int32(n_out), np.int32(inner))
         return out
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis", _resample_options(q)), n_out, inner, outer, x.data,
@@ -249,9 +290,10 @@ def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
         if accumulate:
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
-    if inner < RS_RUN:   # short inner axis (an image's rows): one work-item per position
-        rt.launch(rt.kernel(KFILE, "resample_axis_bwd_rows", _resample_options(q)),
-                  (round_up(max(int(n_in), 1), GROUP), max(outer, 1)), None, v_out.data, out.data,
+    if inner < RS_RUN:   # short inner axis (an image's rows): RS_ROW_POS positions per work-item
+        rt.launch(rt.kernel(KFILE, "resample_axis_bwd_rows", _resample_options(q) + [f"-DRS_INNER={inner}"]),
+                  (round_up(-(-max(int(n_in), 1) // RS_ROW_POS), ROWS_RANGE), max(outer, 1)), None,
+                  v_out.data, out.data,
                   np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner), np.int32(bool(accumulate)))
         return out
     _launch_axis(rt, rt.kernel(KFILE, "resample_axis_bwd", _resample_options(q)), n_in, inner, outer, v_out.data,
