@@ -49,30 +49,38 @@ inline int reflect_idx(int m, int n) {
 #error "CONV_RUN must be 8 or 16"
 #endif
 
-/* sum_i f[i] src[(i - R) step] for the 8 elements src[0 .. 7]: an interior run of conv_axis
- * (step = -inner) or of conv_axis_bwd (step = +inner), R = flen / 2. */
-inline float8 conv_run8(__global const float *src, __global const float *f, int flen, int step) {
-    const int R = flen / 2;
-    float8 acc = (float8)(0.0f);
-    for (int i = 0; i < flen; ++i)
-        acc += f[i] * load8(src + (i - R) * step);
-    return acc;
+/* 8 consecutive floats of local memory (load8 of common.h for a staged line). */
+inline float8 load8_l(__local const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
 }
 
-/* The same for the 16 elements src[0 .. 15], as two 8-wide halves sharing each tap's load. */
-inline void conv_run16(__global const float *src, __global const float *f, int flen, int step,
-                       float8 *lo, float8 *hi) {
-    const int R = flen / 2;
-    float8 a = (float8)(0.0f), b = (float8)(0.0f);
-    for (int i = 0; i < flen; ++i) {
-        const float fi = f[i];
-        __global const float *p = src + (i - R) * step;
-        a += fi * load8(p);
-        b += fi * load8(p + 8);
-    }
-    *lo = a;
-    *hi = b;
+/* conv_run8<S>: sum_i f[i] src[(i - R) step] for the 8 elements src[0 .. 7]: an interior run of
+ * conv_axis (step = -inner) or of conv_axis_bwd (step = +inner), R = flen / 2.  conv_run16<S>: the
+ * same for the 16 elements src[0 .. 15], as two 8-wide halves sharing each tap's load.  Written once
+ * for src in global memory (S empty) and in local memory (S = _l: the staged row passes below). */
+#define CONV_RUNS(S, AS, LOAD)                                                                   \
+inline float8 conv_run8##S(AS const float *src, __global const float *f, int flen, int step) {  \
+    const int R = flen / 2;                                                                      \
+    float8 acc = (float8)(0.0f);                                                                 \
+    for (int i = 0; i < flen; ++i)                                                               \
+        acc += f[i] * LOAD(src + (i - R) * step);                                                \
+    return acc;                                                                                  \
+}                                                                                                \
+inline void conv_run16##S(AS const float *src, __global const float *f, int flen, int step,     \
+                          float8 *lo, float8 *hi) {                                              \
+    const int R = flen / 2;                                                                      \
+    float8 a = (float8)(0.0f), b = (float8)(0.0f);                                               \
+    for (int i = 0; i < flen; ++i) {                                                             \
+        const float fi = f[i];                                                                   \
+        AS const float *p = src + (i - R) * step;                                                \
+        a += fi * LOAD(p);                                                                       \
+        b += fi * LOAD(p + 8);                                                                   \
+    }                                                                                            \
+    *lo = a;                                                                                     \
+    *hi = b;                                                                                     \
 }
+CONV_RUNS(, __global, load8)
+CONV_RUNS(_l, __local, load8_l)
 
 /* sum_i f[i] line[reflect(x - (i - R)) * inner] (zero_border: the taps outside [0, n) dropped):
  * one element of conv_axis; line = &in[o, 0, k]. */
@@ -435,33 +443,6 @@ __kernel void conv_axis_bwd(__global const float *v_out, __global float *v_in,
  * 2 R zeros past each end), after which every run of the line is an interior run of 8-wide loads.
  * The values, the taps and their order are those of the unstaged kernels (a tap outside a
  * zero-border line or an adjoint's line adds f 0, as the gathered paths do): the same results. */
-
-/* conv_run16 / conv_run8 on a staged line (local memory). */
-inline float8 load8_l(__local const float *p) {
-    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
-}
-
-inline float8 conv_run8_l(__local const float *src, __global const float *f, int flen, int step) {
-    const int R = flen / 2;
-    float8 acc = (float8)(0.0f);
-    for (int i = 0; i < flen; ++i)
-        acc += f[i] * load8_l(src + (i - R) * step);
-    return acc;
-}
-
-inline void conv_run16_l(__local const float *src, __global const float *f, int flen, int step,
-                         float8 *lo, float8 *hi) {
-    const int R = flen / 2;
-    float8 a = (float8)(0.0f), b = (float8)(0.0f);
-    for (int i = 0; i < flen; ++i) {
-        const float fi = f[i];
-        __local const float *p = src + (i - R) * step;
-        a += fi * load8_l(p);
-        b += fi * load8_l(p + 8);
-    }
-    *lo = a;
-    *hi = b;
-}
 
 /* Copies the input line of each of the group's nterm terms into l_lines (term c at c * plen):
  * staged position e / inner - pad of the line, element k = e % inner, for e in [0, plen); a
