@@ -475,6 +475,67 @@ inline void stage_lines(__global const float *in, size_t slot, size_t line_off, 
     barrier(CLK_LOCAL_MEM_FENCE);
 }
 
+/* 8 floats to local memory (store8 of common.h for a line kept in local memory). */
+inline void store8_l(__local float *p, float8 v) {
+    p[0] = v.s0; p[1] = v.s1; p[2] = v.s2; p[3] = v.s3;
+    p[4] = v.s4; p[5] = v.s5; p[6] = v.s6; p[7] = v.s7;
+}
+
+/* rows_fwd_runs<S>: the runs of one line of conv_axis_rows's output slot tt (n * inner elements at
+ * out_o) from the group's staged lines (l_lines: term c at c * (n + 2 R) * inner, R samples past
+ * each end): work-item l of L takes the runs l, l + L, ...  Written once for an output line in
+ * global memory (S empty: conv_axis_rows) and in local memory (S = _l: conv_resample_rows). */
+#if CONV_RUN == 16
+#define ROWS_FWD_VECTOR_RUN(STORE)                                                                  \
+            float8 lo = (float8)(0.0f), hi = (float8)(0.0f);                                        \
+            for (int c = 0; c < nterm; ++c) {                                                       \
+                float8 a, b;                                                                        \
+                conv_run16_l(l_lines + c * plen + R * inner + xi0, f + TERM_FILTER(tt, c) * flen, flen, \
+                             -inner, &a, &b);                                                       \
+                lo = c ? lo + a : a;                                                                \
+                hi = c ? hi + b : b;                                                                \
+            }                                                                                       \
+            STORE(out_o + xi0, lo);                                                                 \
+            STORE(out_o + xi0 + 8, hi);
+#else
+#define ROWS_FWD_VECTOR_RUN(STORE)                                                                  \
+            float8 acc = (float8)(0.0f);                                                            \
+            for (int c = 0; c < nterm; ++c) {                                                       \
+                const float8 a = conv_run8_l(l_lines + c * plen + R * inner + xi0,                  \
+                                             f + TERM_FILTER(tt, c) * flen, flen, -inner);          \
+                acc = c ? acc + a : a;                                                              \
+            }                                                                                       \
+            STORE(out_o + xi0, acc);
+#endif
+#define ROWS_FWD_RUNS(S, AS, STORE)                                                                 \
+inline void rows_fwd_runs##S(AS float *out_o, __global const float *f, int flen, int n, int inner, \
+                             __global const int *tt, __local const float *l_lines) {                \
+    const int lid = get_local_id(0), L = get_local_size(0);                                         \
+    const int R = flen / 2;                                                                         \
+    const int len = n * inner, plen = (n + 2 * R) * inner;                                          \
+    const int nterm = tt[0];                                                                        \
+    for (int xi0 = lid * CONV_RUN; xi0 < len; xi0 += L * CONV_RUN) {                                \
+        /* element xi reads staged[xi + R inner + (R - i) inner] for tap i */                       \
+        if (xi0 + CONV_RUN <= len) {                                                                \
+            ROWS_FWD_VECTOR_RUN(STORE)                                                              \
+        } else {                                                                                    \
+            for (int xi = xi0; xi < len; ++xi) {                                                    \
+                float acc = 0.0f;                                                                   \
+                for (int c = 0; c < nterm; ++c) {                                                   \
+                    __local const float *src = l_lines + c * plen + R * inner + xi;                 \
+                    __global const float *fc = f + TERM_FILTER(tt, c) * flen;                       \
+                    float e = 0.0f;                                                                 \
+                    for (int i = 0; i < flen; ++i) e += fc[i] * src[(R - i) * inner];               \
+                    acc = c ? acc + e : e;                                                          \
+                }                                                                                   \
+                out_o[xi] = acc;                                                                    \
+            }                                                                                       \
+        }                                                                                           \
+    }                                                                                               \
+}
+ROWS_FWD_RUNS(, __global, store8)
+ROWS_FWD_RUNS(_l, __local, store8_l)
+
 /* conv_axis for a row pass: the same arguments, and l_lines [max terms * (n + 2 R) * inner + 1]
  * floats of local memory.  Range (L, outer, slots), work-groups (L, 1, 1): work-item l of the
  * group of (o, t) computes the runs l, l + L, ... of line o of output slot t. */
@@ -484,51 +545,10 @@ __kernel void conv_axis_rows(__global const float *in, __global float *out,
                              __global const int *terms, const int term_stride, __local float *l_lines) {
     const int o = get_global_id(1);
     const int t = get_global_id(2);
-    const int lid = get_local_id(0), L = get_local_size(0);
-    const int R = flen / 2;
-    const int len = n * inner, plen = (n + 2 * R) * inner;
-    const size_t slot = (size_t)outer * len;
+    const size_t slot = (size_t)outer * n * inner;
     __global const int *tt = terms + t * term_stride;
-    const int nterm = tt[0];
-    stage_lines(in, slot, (size_t)o * len, tt, nterm, n, inner, R, !zero_border, l_lines);
-    __global float *out_o = out + t * slot + (size_t)o * len;
-    for (int xi0 = lid * CONV_RUN; xi0 < len; xi0 += L * CONV_RUN) {
-        /* element xi reads staged[xi + R inner + (R - i) inner] for tap i */
-        if (xi0 + CONV_RUN <= len) {
-#if CONV_RUN == 16
-            float8 lo = (float8)(0.0f), hi = (float8)(0.0f);
-            for (int c = 0; c < nterm; ++c) {
-                float8 a, b;
-                conv_run16_l(l_lines + c * plen + R * inner + xi0, f + TERM_FILTER(tt, c) * flen, flen, -inner,
-                             &a, &b);
-                lo = c ? lo + a : a;
-                hi = c ? hi + b : b;
-            }
-            store8(out_o + xi0, lo);
-            store8(out_o + xi0 + 8, hi);
-#else
-            float8 acc = (float8)(0.0f);
-            for (int c = 0; c < nterm; ++c) {
-                const float8 a = conv_run8_l(l_lines + c * plen + R * inner + xi0, f + TERM_FILTER(tt, c) * flen,
-                                             flen, -inner);
-                acc = c ? acc + a : a;
-            }
-            store8(out_o + xi0, acc);
-#endif
-        } else {
-            for (int xi = xi0; xi < len; ++xi) {
-                float acc = 0.0f;
-                for (int c = 0; c < nterm; ++c) {
-                    __local const float *src = l_lines + c * plen + R * inner + xi;
-                    __global const float *fc = f + TERM_FILTER(tt, c) * flen;
-                    float e = 0.0f;
-                    for (int i = 0; i < flen; ++i) e += fc[i] * src[(R - i) * inner];
-                    acc = c ? acc + e : e;
-                }
-                out_o[xi] = acc;
-            }
-        }
-    }
+    stage_lines(in, slot, (size_t)o * n * inner, tt, tt[0], n, inner, flen / 2, !zero_border, l_lines);
+    rows_fwd_runs(out + t * slot + (size_t)o * n * inner, f, flen, n, inner, tt, l_lines);
 }
 
 /* The reflection pass of conv_axis_rows_bwd for the 8 flat elements yi .. yi + 7 of the line: acc
@@ -556,26 +576,18 @@ inline float8 v_reflect_pass8(float8 acc, __local const float *src, __global con
     return acc;
 }
 
-/* conv_axis_bwd for a row pass of a line longer than the filter (n > 2 R + 1: at most one
- * reflection per position): the same arguments, and l_lines [max terms * (n + 4 R) * inner + 1]
- * floats of local memory; range and work-groups as conv_axis_rows.  Each run's own taps read the
- * zero-padded staged line as interior runs do; the runs that hold a border position (y <= R or
- * y >= n - 1 - R) then add their reflections' taps (v_reflect_pass8). */
-__kernel void conv_axis_rows_bwd(__global const float *v_out, __global float *v_in,
-                                 __global const float *f, const int flen,
-                                 const int outer, const int n, const int inner, const int accumulate,
-                                 __global const int *terms, const int term_stride, __local float *l_lines) {
-    const int o = get_global_id(1);
-    const int t = get_global_id(2);
+/* The runs of one line of conv_axis_rows_bwd's output slot tt (n * inner elements at vi) from the
+ * group's staged lines (l_lines: term c at c * (n + 4 R) * inner, 2 R zeros past each end of each,
+ * and the staged zero after the last): work-item l of L takes the runs l, l + L, ...  Each run's
+ * own taps read the staged line as interior runs do; the runs that hold a border position (y <= R
+ * or y >= n - 1 - R) then add their reflections' taps (v_reflect_pass8). */
+inline void rows_bwd_runs(__global float *vi, __global const float *f, int flen, int n, int inner,
+                          int accumulate, __global const int *tt, __local const float *l_lines) {
     const int lid = get_local_id(0), L = get_local_size(0);
     const int R = flen / 2;
     const int len = n * inner, plen = (n + 4 * R) * inner;
-    const size_t slot = (size_t)outer * len;
-    __global const int *tt = terms + t * term_stride;
     const int nterm = tt[0];
-    stage_lines(v_out, slot, (size_t)o * len, tt, nterm, n, inner, 2 * R, 0, l_lines);
     const int zero = nterm * plen;
-    __global float *vi = v_in + t * slot + (size_t)o * len;
     for (int yi0 = lid * CONV_RUN; yi0 < len; yi0 += L * CONV_RUN) {
         /* element yi reads staged[yi + 2 R inner + (i - R) inner] for tap i */
         if (yi0 + CONV_RUN <= len) {
@@ -612,6 +624,21 @@ __kernel void conv_axis_rows_bwd(__global const float *v_out, __global float *v_
             }
         }
     }
+}
+
+/* conv_axis_bwd for a row pass of a line longer than the filter (n > 2 R + 1: at most one
+ * reflection per position): the same arguments, and l_lines [max terms * (n + 4 R) * inner + 1]
+ * floats of local memory; range and work-groups as conv_axis_rows. */
+__kernel void conv_axis_rows_bwd(__global const float *v_out, __global float *v_in,
+                                 __global const float *f, const int flen,
+                                 const int outer, const int n, const int inner, const int accumulate,
+                                 __global const int *terms, const int term_stride, __local float *l_lines) {
+    const int o = get_global_id(1);
+    const int t = get_global_id(2);
+    const size_t slot = (size_t)outer * n * inner;
+    __global const int *tt = terms + t * term_stride;
+    stage_lines(v_out, slot, (size_t)o * n * inner, tt, tt[0], n, inner, 2 * (flen / 2), 0, l_lines);
+    rows_bwd_runs(v_in + t * slot + (size_t)o * n * inner, f, flen, n, inner, accumulate, tt, l_lines);
 }
 
 /* The resampling kernels also compute RS_RUN = 8 consecutive flat elements (j * inner + k) of a
@@ -778,6 +805,81 @@ __kernel void resample_axis_bwd_rows(__global const float *v_out, __global float
         }
     }
 }
+
+/* The adjoint of a row pass followed by the row resampling (decompose_level_stack's rows), in one
+ * launch: conv_axis_rows_bwd whose staged lines are made by resample_axis_bwd_rows from the
+ * resampled cotangents v_out [S, outer, n_out, inner] (line o of input slot s), instead of read
+ * from an array that resample_axis_bwd_rows would have written.  The same values in the same
+ * order: the same bits as the two launches.  v_in: [T, outer, n, inner] (+= with accumulate);
+ * n > 2 R + 1.  Build with RP, RQ and RS_INNER = inner as resample_axis_bwd_rows. */
+#ifdef RS_INNER
+__kernel void resample_conv_rows_bwd(__global const float *v_out, __global float *v_in,
+                                     __global const float *f, const int flen,
+                                     const int outer, const int n, const int n_out, const int accumulate,
+                                     __global const int *terms, const int term_stride, __local float *l_lines) {
+    const int o = get_global_id(1);
+    const int t = get_global_id(2);
+    const int lid = get_local_id(0), L = get_local_size(0);
+    const int inner = RS_INNER, R = flen / 2;
+    const int plen = (n + 4 * R) * inner;
+    __global const int *tt = terms + t * term_stride;
+    const int nterm = tt[0];
+    for (int c = 0; c < nterm; ++c) {
+        __global const float *vo = v_out + (TERM_SRC(tt, c) * (size_t)outer + o) * n_out * inner;
+        __local float *dst = l_lines + c * plen + 2 * R * inner;   /* position 0 */
+        for (int i = lid; i < n; i += L) {                         /* resample_axis_bwd_rows */
+            const int2 jr = rs_targets(i, n_out);
+            for (int k = 0; k < RS_INNER; ++k) {
+                float acc = 0.0f;
+                for (int u = 0; u < RS_JMAX; ++u) {
+                    const int j = jr.s0 + u;
+                    if (j > jr.s1) break;
+                    if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * RS_INNER + k];
+                }
+                dst[i * RS_INNER + k] = acc;
+            }
+        }
+        for (int b = lid; b < 4 * R * inner; b += L)               /* 2 R zeros past each end */
+            dst[b < 2 * R * inner ? b - 2 * R * inner : n * inner + b - 2 * R * inner] = 0.0f;
+    }
+    if (lid == 0) l_lines[nterm * plen] = 0.0f;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    rows_bwd_runs(v_in + (t * (size_t)outer + o) * n * inner, f, flen, n, inner, accumulate, tt, l_lines);
+}
+
+/* A row pass followed by the row resampling (decompose_level_stack's rows) in one launch:
+ * conv_axis_rows (reflect border) whose output line stays in local memory (l_conv [n inner]), then
+ * resample_axis_rows from it into out [T, outer, n_out, inner].  The same values in the same order:
+ * the same bits as the two launches.  l_lines as conv_axis_rows.  Build with RP, RQ and
+ * RS_INNER = inner as resample_axis_rows. */
+__kernel void conv_resample_rows(__global const float *in, __global float *out,
+                                 __global const float *f, const int flen,
+                                 const int outer, const int n, const int n_out,
+                                 __global const int *terms, const int term_stride,
+                                 __local float *l_lines, __local float *l_conv) {
+    const int o = get_global_id(1);
+    const int t = get_global_id(2);
+    const int lid = get_local_id(0), L = get_local_size(0);
+    const int inner = RS_INNER;
+    __global const int *tt = terms + t * term_stride;
+    stage_lines(in, (size_t)outer * n * inner, (size_t)o * n * inner, tt, tt[0], n, inner, flen / 2, 1, l_lines);
+    rows_fwd_runs_l(l_conv, f, flen, n, inner, tt, l_lines);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    __global float *out_o = out + (t * (size_t)outer + o) * n_out * inner;
+    for (int j = lid; j < n_out; j += L) {                 /* resample_axis_rows */
+        int r;
+        const int i0 = rs_source(j, &r);
+        __local const float *src = l_conv + i0 * RS_INNER;
+        const float w = (float)r / (float)RQ;
+        for (int k = 0; k < RS_INNER; ++k) {
+            float v = src[k];
+            if (r > 0) v = (1.0f - w) * v + w * src[RS_INNER + k];
+            out_o[j * RS_INNER + k] = v;
+        }
+    }
+}
+#endif
+
 
 /* d[p, c] = (a[p, c] - b[p, c]) * (has_mask ? mask[p] : 1).  a, b, d: [npix, C]; mask: [npix] */
 __kernel void masked_diff(__global const float *a, __global const float *b,

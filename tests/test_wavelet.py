@@ -152,6 +152,53 @@ def test_staged_row_passes_give_the_unstaged_bits(rt, conv_run, monkeypatch, sha
         np.testing.assert_array_equal(a, b, err_msg=name)
 
 
+@pytest.mark.parametrize("n, inner, q", [(19, 3, 2), (40, 3, 2), (64, 1, 2), (5, 3, 2), (33, 3, 1)])
+@pytest.mark.parametrize("group", [1, 5])
+def test_conv_resample_rows_gives_the_two_launches_bits(rt, conv_run, monkeypatch, n, inner, q, group):
+    """conv_resample_stack along rows (one launch: conv_resample_rows) gives the bits of
+    conv_axis_stack followed by resample_axis, lines shorter than the filter included."""
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    f = rand((3, 13), n + q)
+    x = rand((3, 4, n, inner), inner + q)
+    launches = []
+    plain_kernel = rt.kernel
+    monkeypatch.setattr(rt, "kernel", lambda *a, **k: launches.append(a[1]) or plain_kernel(*a, **k))
+    got = ops.conv_resample_stack(rt, dev(rt, x), f, STACK_TERMS, q, 2).get()
+    assert ("conv_resample_rows" in launches) == (inner < conv_run)
+    monkeypatch.setattr(ops, "STAGED_ROWS", False)
+    np.testing.assert_array_equal(got, ops.conv_resample_stack(rt, dev(rt, x), f, STACK_TERMS, q, 2).get())
+    assert got.shape == (len(STACK_TERMS), 4, F.resampled_length(n, q), inner)
+
+
+@pytest.mark.parametrize("n_in, inner, q", [(19, 3, 2), (40, 3, 2), (64, 1, 2), (9, 3, 2), (33, 3, 1)])
+@pytest.mark.parametrize("group", [1, 5])
+def test_resample_conv_rows_adjoint_gives_the_two_launches_bits(rt, conv_run, monkeypatch, n_in, inner, q, group):
+    """resample_conv_stack_bwd along rows (one launch: resample_conv_rows_bwd) gives the bits of
+    resample_axis_bwd followed by conv_axis_stack_bwd, alone and accumulating; lines not longer
+    than the filter take the two launches."""
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    n_out = F.resampled_length(n_in, q)
+    f = rand((3, 13), n_in + q)
+    v = rand((3, 4, n_out, inner), inner + q)
+    base = rand((len(STACK_TERMS), 4, n_in, inner), 5)
+
+    def both():
+        out = ops.resample_conv_stack_bwd(rt, dev(rt, v), q, n_in, f, STACK_TERMS, 2,
+                                          out=dev(rt, np.zeros_like(base)))
+        acc = ops.resample_conv_stack_bwd(rt, dev(rt, v), q, n_in, f, STACK_TERMS, 2, out=dev(rt, base),
+                                          accumulate=True)
+        return out.get(), acc.get()
+    launches = []
+    plain_kernel = rt.kernel
+    monkeypatch.setattr(rt, "kernel", lambda *a, **k: launches.append(a[1]) or plain_kernel(*a, **k))
+    got = both()
+    fused = "resample_conv_rows_bwd" in launches
+    assert fused == (inner < conv_run and n_in > 13)
+    monkeypatch.setattr(ops, "STAGED_ROWS", False)
+    for a, b in zip(got, both()):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("shape, axis", [((3, 5, 7, 3), 2), ((3, 33, 21, 3), 1), ((3, 33, 21, 3), 2),
                                          ((3, 2, 4, 1), 1), ((3, 1, 9, 2), 1), ((3, 70), 1)])
 def test_conv_axis_stack_adjoint(rt, conv_run, shape, axis):

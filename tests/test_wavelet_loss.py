@@ -276,6 +276,27 @@ def test_oclgrind_staged_row_passes(rt, group, monkeypatch):
 
 
 @pytest.mark.oclgrind
+@pytest.mark.parametrize("group", [1, 4])
+def test_oclgrind_row_pass_and_resampling_in_one_launch(rt, group, monkeypatch):
+    # a row pass and its resampling in one launch (conv_resample_rows) and their adjoint
+    # (resample_conv_rows_bwd), two-term slots, accumulating, against the two launches each
+    monkeypatch.setattr(ops, "conv_run", lambda rt: ops.CONV_RUN_CPU)
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    f = np.random.default_rng(9).standard_normal((3, 13)).astype(np.float32)
+    terms = (((1, 2),), ((0, 0), (1, 1)))
+    back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+    x = np.random.default_rng(13).standard_normal((2, 2, 19, 3)).astype(np.float32)
+    got = ops.conv_resample_stack(rt, dev(rt, x), f, terms, 2, 2).get()
+    np.testing.assert_allclose(got, F.resample_axis(F.conv_axis_stack(x, f, terms, 2), 2, 2), rtol=1e-5, atol=1e-5)
+    v = np.random.default_rng(10).standard_normal(got.shape).astype(np.float32)
+    ATv = ops.resample_conv_stack_bwd(rt, dev(rt, v), 2, 19, f, back, 2, out=dev(rt, x), accumulate=True).get()
+    w = ops.resample_axis_bwd(rt, dev(rt, v), 2, 2, 19)
+    ref = ops.conv_axis_stack_bwd(rt, w, f, back, 2, out=dev(rt, x), accumulate=True).get()
+    np.testing.assert_allclose(ATv, ref, rtol=1e-6, atol=1e-6)
+    assert float(np.sum(got * v)) == pytest.approx(float(np.sum(x * (ATv - x))), rel=1e-4, abs=1e-4)
+
+
+@pytest.mark.oclgrind
 def test_oclgrind_resample_runs_and_rows(rt):
     # both resampling layouts (short inner axis: a work-item per position; long: 8-element runs,
     # 8-wide in one sample) and their adjoints, accumulating, with a length not a multiple of 8

@@ -343,8 +343,7 @@ ALL_BANDS = LevelPlan(BANDS)
 def decompose_level_stack(rt, img: cla.Array, q: int, plan: LevelPlan = ALL_BANDS) -> cla.Array:
     """One level: img [H, W, C] -> the band stack [len(plan.bands), H', W', C]."""
     f = device_filter_stack(rt, q)
-    rows = conv_axis_stack(rt, _one(img), f, plan.row_terms, axis=2)      # [rows, H, W, C]
-    rows = resample_axis(rt, rows, q, axis=2)                             # [rows, H, W', C]
+    rows = conv_resample_stack(rt, _one(img), f, plan.row_terms, q, axis=2)   # [rows, H, W', C]
     cols = conv_axis_stack(rt, rows, f, plan.col_terms, axis=1)           # [bands, H, W', C]
     return resample_axis(rt, cols, q, axis=1)                             # [bands, H', W', C]
 
@@ -361,8 +360,63 @@ def decompose_level_stack_bwd(rt, v_stack: cla.Array, shape, q: int, plan: Level
         out = _empty(rt, (H, W, C))
     u = resample_axis_bwd(rt, v_stack, q, axis=1, n_in=H)                 # [bands, H, W', C]
     v_rows = conv_axis_stack_bwd(rt, u, f, plan.col_bwd_terms, axis=1)    # [rows, H, W', C]
-    w = resample_axis_bwd(rt, v_rows, q, axis=2, n_in=W)                  # [rows, H, W, C]
-    conv_axis_stack_bwd(rt, w, f, plan.row_bwd_terms, axis=2, out=_one(out), accumulate=accumulate)
+    resample_conv_stack_bwd(rt, v_rows, q, W, f, plan.row_bwd_terms, axis=2, out=_one(out), accumulate=accumulate)
+    return out
+
+
+def conv_resample_stack(rt, x: cla.Array, f, terms: Terms, q: int, axis: int) -> cla.Array:
+    """resample_axis(conv_axis_stack(x, f, terms, axis), q, axis) (reflect border): a pass's
+    convolution and resampling along axis.  A row pass that conv_axis_rows stages runs as one launch
+    (cl/wavelet.cl conv_resample_rows: the convolved line kept in local memory; the same bits as
+    the two launches)."""
+    _check(x, "x")
+    farr, nf, flen = _filter_stack(rt, f)
+    slots, outer, n, inner = _stack_axis(x, axis)
+    run = conv_run(rt)
+    staged = _staged_rows_floats(rt, "conv_axis", n, inner, flen, max(len(t) for t in terms), run)
+    if not staged or 4 * (staged + n * inner) > ROWS_LOCAL_SHARE * rt.local_mem_size:
+        return resample_axis(rt, conv_axis_stack(rt, x, f, terms, axis), q, axis=axis)
+    import pyopencl as cl
+    table, stride = _terms_table(rt, terms, slots, nf)
+    n_out = resampled_length(n, int(q))
+    shape = list(x.shape)
+    shape[0], shape[axis] = len(terms), n_out
+    out = _empty(rt, shape)
+    group = rows_group(rt)
+    kernel = rt.kernel(KFILE, "conv_resample_rows",
+                       _resample_options(q) + [f"-DRS_INNER={inner}", f"-DCONV_RUN={run}"])
+    rt.launch(kernel, (group, max(outer, 1), len(terms)), (group, 1, 1), x.data, out.data, farr.data,
+              np.int32(flen), np.int32(outer), np.int32(n), np.int32(n_out), table.data, np.int32(stride),
+              cl.LocalMemory(4 * staged), cl.LocalMemory(4 * n * inner))
+    return out
+
+
+def resample_conv_stack_bwd(rt, v_out: cla.Array, q: int, n_in: int, f, terms: Terms, axis: int, out: cla.Array,
+                            accumulate: bool = False) -> cla.Array:
+    """conv_axis_stack_bwd(resample_axis_bwd(v_out, q, axis, n_in), f, terms, axis): the adjoint of
+    a pass's convolution and resampling along axis, into out (+= with accumulate).  A row pass
+    that conv_axis_rows_bwd stages runs as one launch (cl/wavelet.cl resample_conv_rows_bwd: the
+    staged lines made by the resampling's adjoint; the same bits as the two launches)."""
+    _check(v_out, "v_out")
+    farr, nf, flen = _filter_stack(rt, f)
+    slots, outer, n_out, inner = _stack_axis(v_out, axis)
+    run = conv_run(rt)
+    staged = _staged_rows_floats(rt, "conv_axis_bwd", int(n_in), inner, flen, max(len(t) for t in terms), run)
+    if not staged or resampled_length(int(n_in), int(q)) != n_out:
+        w = resample_axis_bwd(rt, v_out, q, axis=axis, n_in=n_in)
+        return conv_axis_stack_bwd(rt, w, f, terms, axis, out=out, accumulate=accumulate)
+    import pyopencl as cl
+    table, stride = _terms_table(rt, terms, slots, nf)
+    shape = list(v_out.shape)
+    shape[0], shape[axis] = len(terms), int(n_in)
+    if tuple(out.shape) != tuple(shape):
+        raise ValueError(f"out must be {tuple(shape)}, got {out.shape}")
+    group = rows_group(rt)
+    kernel = rt.kernel(KFILE, "resample_conv_rows_bwd",
+                       _resample_options(q) + [f"-DRS_INNER={inner}", f"-DCONV_RUN={run}"])
+    rt.launch(kernel, (group, max(outer, 1), len(terms)), (group, 1, 1), v_out.data, out.data, farr.data,
+              np.int32(flen), np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(bool(accumulate)),
+              table.data, np.int32(stride), cl.LocalMemory(4 * staged))
     return out
 
 
