@@ -8,6 +8,8 @@ Axis-generic ops run along one axis of an array of any rank:
   conv_axis_stack / _bwd              the same over a stack of arrays: each output slot a sum of
                                       convolutions of input slots with filters of a filter stack
   resample_axis / resample_axis_bwd   rational resampling by a = (q + 1) / q
+  conv_resample_stack /               a stacked convolution then the resampling along one axis,
+    resample_conv_stack_bwd           and its adjoint: one launch each for an image's rows
 Image-level ops, images channel-last [H, W, C]:
   decompose_level_stack / _bwd          one level as a band stack [bands, H', W', C]: two stacked
                                         convolutions and two resamplings, whatever the bands
