@@ -754,32 +754,47 @@ __kernel void resample_axis_bwd(__global const float *v_out, __global float *v_i
 /* resample_axis and resample_axis_bwd for a short inner axis (the row passes of an image,
  * inner = C < RS_RUN): work-item (u, o) computes the inner elements of RS_ROW_POS consecutive
  * positions of line o, from position u * RS_ROW_POS on (no division by inner at all; one position
- * per work-item left PoCL's per-work-item cost larger than the work), with inner the build option
- * RS_INNER, so that its loops unroll.  The same terms in the same order as the kernels above. */
+ * per work-item left PoCL's per-work-item cost larger than the work).  An image's 3 channels take
+ * a copy of the loops with inner the constant 3, which the compiler unrolls.  The same terms in
+ * the same order as the kernels above. */
 #define RS_ROW_POS 8
-#ifdef RS_INNER   /* the row kernels' inner as a constant (endowave_cl/wavelet/ops.py sets it) */
-#define RS_ROW_INNER RS_INNER
-#else
-#define RS_ROW_INNER inner
-#endif
+#define RS_ROWS_3(BODY) if (inner == 3) { BODY(3) } else { BODY(inner) }
+
+/* out[o, j, :] for output position j, from the line in_o (inner = INNER) */
+#define RS_ROW_OUT(INNER, in_o, out_o, j)                                                     \
+    {                                                                                         \
+        int r;                                                                                \
+        const int i0 = rs_source(j, &r);                                                      \
+        const float w = (float)r / (float)RQ;                                                 \
+        for (int k = 0; k < (INNER); ++k) {                                                   \
+            float v = (in_o)[i0 * (INNER) + k];                                               \
+            if (r > 0) v = (1.0f - w) * v + w * (in_o)[(i0 + 1) * (INNER) + k];               \
+            (out_o)[(j) * (INNER) + k] = v;                                                   \
+        }                                                                                     \
+    }
+
+/* acc = the adjoint at input position i, element k, from the line vo (inner = INNER) */
+#define RS_ROW_ADJ(INNER, vo, i, k, acc)                                                      \
+    {                                                                                         \
+        const int2 jr = rs_targets(i, n_out);                                                 \
+        for (int u = 0; u < RS_JMAX; ++u) {                                                   \
+            const int j = jr.s0 + u;                                                          \
+            if (j > jr.s1) break;                                                             \
+            if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * (vo)[(size_t)j * (INNER) + k];   \
+        }                                                                                     \
+    }
+
 __kernel void resample_axis_rows(__global const float *in, __global float *out,
                                  const int outer, const int n_in, const int n_out, const int inner) {
     const int j0 = get_global_id(0) * RS_ROW_POS;
     const int o = get_global_id(1);
     if (j0 >= n_out || o >= outer) return;
     const int j1 = j0 + RS_ROW_POS < n_out ? j0 + RS_ROW_POS : n_out;
-    for (int j = j0; j < j1; ++j) {
-        int r;
-        const int i0 = rs_source(j, &r);
-        __global const float *src = in + ((size_t)o * n_in + i0) * RS_ROW_INNER;
-        __global float *dst = out + ((size_t)o * n_out + j) * RS_ROW_INNER;
-        const float w = (float)r / (float)RQ;
-        for (int k = 0; k < RS_ROW_INNER; ++k) {
-            float v = src[k];
-            if (r > 0) v = (1.0f - w) * v + w * src[RS_ROW_INNER + k];
-            dst[k] = v;
-        }
-    }
+    __global const float *in_o = in + (size_t)o * n_in * inner;
+    __global float *out_o = out + (size_t)o * n_out * inner;
+#define RS_FWD(INNER) for (int j = j0; j < j1; ++j) RS_ROW_OUT(INNER, in_o, out_o, j)
+    RS_ROWS_3(RS_FWD)
+#undef RS_FWD
 }
 
 __kernel void resample_axis_bwd_rows(__global const float *v_out, __global float *v_in,
@@ -789,21 +804,18 @@ __kernel void resample_axis_bwd_rows(__global const float *v_out, __global float
     const int o = get_global_id(1);
     if (i0 >= n_in || o >= outer) return;
     const int i1 = i0 + RS_ROW_POS < n_in ? i0 + RS_ROW_POS : n_in;
-    __global const float *vo = v_out + (size_t)o * n_out * RS_ROW_INNER;
-    for (int i = i0; i < i1; ++i) {
-        const int2 jr = rs_targets(i, n_out);
-        __global float *vi = v_in + ((size_t)o * n_in + i) * RS_ROW_INNER;
-        for (int k = 0; k < RS_ROW_INNER; ++k) {
-            float acc = 0.0f;
-            for (int t = 0; t < RS_JMAX; ++t) {
-                const int j = jr.s0 + t;
-                if (j > jr.s1) break;
-                if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * RS_ROW_INNER + k];
-            }
-            if (accumulate) acc += vi[k];
-            vi[k] = acc;
+    __global const float *vo = v_out + (size_t)o * n_out * inner;
+    __global float *vi = v_in + (size_t)o * n_in * inner;
+#define RS_BWD(INNER)                                                                         \
+    for (int i = i0; i < i1; ++i)                                                             \
+        for (int k = 0; k < (INNER); ++k) {                                                   \
+            float acc = 0.0f;                                                                 \
+            RS_ROW_ADJ(INNER, vo, i, k, acc)                                                  \
+            if (accumulate) acc += vi[i * (INNER) + k];                                       \
+            vi[i * (INNER) + k] = acc;                                                        \
         }
-    }
+    RS_ROWS_3(RS_BWD)
+#undef RS_BWD
 }
 
 /* The adjoint of a row pass followed by the row resampling (decompose_level_stack's rows), in one
@@ -811,34 +823,31 @@ __kernel void resample_axis_bwd_rows(__global const float *v_out, __global float
  * resampled cotangents v_out [S, outer, n_out, inner] (line o of input slot s), instead of read
  * from an array that resample_axis_bwd_rows would have written.  The same values in the same
  * order: the same bits as the two launches.  v_in: [T, outer, n, inner] (+= with accumulate);
- * n > 2 R + 1.  Build with RP, RQ and RS_INNER = inner as resample_axis_bwd_rows. */
-#ifdef RS_INNER
+ * n > 2 R + 1. */
 __kernel void resample_conv_rows_bwd(__global const float *v_out, __global float *v_in,
                                      __global const float *f, const int flen,
-                                     const int outer, const int n, const int n_out, const int accumulate,
-                                     __global const int *terms, const int term_stride, __local float *l_lines) {
+                                     const int outer, const int n, const int n_out, const int inner,
+                                     const int accumulate, __global const int *terms, const int term_stride,
+                                     __local float *l_lines) {
     const int o = get_global_id(1);
     const int t = get_global_id(2);
     const int lid = get_local_id(0), L = get_local_size(0);
-    const int inner = RS_INNER, R = flen / 2;
+    const int R = flen / 2;
     const int plen = (n + 4 * R) * inner;
     __global const int *tt = terms + t * term_stride;
     const int nterm = tt[0];
     for (int c = 0; c < nterm; ++c) {
         __global const float *vo = v_out + (TERM_SRC(tt, c) * (size_t)outer + o) * n_out * inner;
         __local float *dst = l_lines + c * plen + 2 * R * inner;   /* position 0 */
-        for (int i = lid; i < n; i += L) {                         /* resample_axis_bwd_rows */
-            const int2 jr = rs_targets(i, n_out);
-            for (int k = 0; k < RS_INNER; ++k) {
-                float acc = 0.0f;
-                for (int u = 0; u < RS_JMAX; ++u) {
-                    const int j = jr.s0 + u;
-                    if (j > jr.s1) break;
-                    if (RS_WEIGHT_OK(j, i)) acc += RS_WEIGHT(j, i) * vo[(size_t)j * RS_INNER + k];
-                }
-                dst[i * RS_INNER + k] = acc;
+#define RS_STAGE(INNER)                                            /* resample_axis_bwd_rows */ \
+        for (int i = lid; i < n; i += L)                                                      \
+            for (int k = 0; k < (INNER); ++k) {                                               \
+                float acc = 0.0f;                                                             \
+                RS_ROW_ADJ(INNER, vo, i, k, acc)                                              \
+                dst[i * (INNER) + k] = acc;                                                   \
             }
-        }
+        RS_ROWS_3(RS_STAGE)
+#undef RS_STAGE
         for (int b = lid; b < 4 * R * inner; b += L)               /* 2 R zeros past each end */
             dst[b < 2 * R * inner ? b - 2 * R * inner : n * inner + b - 2 * R * inner] = 0.0f;
     }
@@ -850,36 +859,24 @@ __kernel void resample_conv_rows_bwd(__global const float *v_out, __global float
 /* A row pass followed by the row resampling (decompose_level_stack's rows) in one launch:
  * conv_axis_rows (reflect border) whose output line stays in local memory (l_conv [n inner]), then
  * resample_axis_rows from it into out [T, outer, n_out, inner].  The same values in the same order:
- * the same bits as the two launches.  l_lines as conv_axis_rows.  Build with RP, RQ and
- * RS_INNER = inner as resample_axis_rows. */
+ * the same bits as the two launches.  l_lines as conv_axis_rows. */
 __kernel void conv_resample_rows(__global const float *in, __global float *out,
                                  __global const float *f, const int flen,
-                                 const int outer, const int n, const int n_out,
+                                 const int outer, const int n, const int n_out, const int inner,
                                  __global const int *terms, const int term_stride,
                                  __local float *l_lines, __local float *l_conv) {
     const int o = get_global_id(1);
     const int t = get_global_id(2);
     const int lid = get_local_id(0), L = get_local_size(0);
-    const int inner = RS_INNER;
     __global const int *tt = terms + t * term_stride;
     stage_lines(in, (size_t)outer * n * inner, (size_t)o * n * inner, tt, tt[0], n, inner, flen / 2, 1, l_lines);
     rows_fwd_runs_l(l_conv, f, flen, n, inner, tt, l_lines);
     barrier(CLK_LOCAL_MEM_FENCE);
     __global float *out_o = out + (t * (size_t)outer + o) * n_out * inner;
-    for (int j = lid; j < n_out; j += L) {                 /* resample_axis_rows */
-        int r;
-        const int i0 = rs_source(j, &r);
-        __local const float *src = l_conv + i0 * RS_INNER;
-        const float w = (float)r / (float)RQ;
-        for (int k = 0; k < RS_INNER; ++k) {
-            float v = src[k];
-            if (r > 0) v = (1.0f - w) * v + w * src[RS_INNER + k];
-            out_o[j * RS_INNER + k] = v;
-        }
-    }
+#define RS_FWD(INNER) for (int j = lid; j < n_out; j += L) RS_ROW_OUT(INNER, l_conv, out_o, j)
+    RS_ROWS_3(RS_FWD)
+#undef RS_FWD
 }
-#endif
-
 
 /* d[p, c] = (a[p, c] - b[p, c]) * (has_mask ? mask[p] : 1).  a, b, d: [npix, C]; mask: [npix] */
 __kernel void masked_diff(__global const float *a, __global const float *b,

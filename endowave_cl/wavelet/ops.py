@@ -268,7 +268,7 @@ def resample_axis(rt, x: cla.Array, q: int, axis: int, out: Optional[cla.Array] 
     shape[axis % len(shape)] = n_out
     out = _empty(rt, shape) if out is None else out
     if inner < RS_RUN:   # short inner axis (an image's rows): RS_ROW_POS positions per work-item
-        rt.launch(rt.kernel(KFILE, "resample_axis_rows", _resample_options(q) + [f"-DRS_INNER={inner}"]),
+        rt.launch(rt.kernel(KFILE, "resample_axis_rows", _resample_options(q)),
                   (round_up(-(-max(n_out, 1) // RS_ROW_POS), ROWS_RANGE), max(outer, 1)), None, x.data, out.data,
                   np.int32(outer),
                   np.int32(n), np.int32(n_out), np.int32(inner))
@@ -293,7 +293,7 @@ def resample_axis_bwd(rt, v_out: cla.Array, q: int, axis: int, n_in: int,
             raise ValueError("accumulate needs out")
         out = _empty(rt, shape)
     if inner < RS_RUN:   # short inner axis (an image's rows): RS_ROW_POS positions per work-item
-        rt.launch(rt.kernel(KFILE, "resample_axis_bwd_rows", _resample_options(q) + [f"-DRS_INNER={inner}"]),
+        rt.launch(rt.kernel(KFILE, "resample_axis_bwd_rows", _resample_options(q)),
                   (round_up(-(-max(int(n_in), 1) // RS_ROW_POS), ROWS_RANGE), max(outer, 1)), None,
                   v_out.data, out.data,
                   np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner), np.int32(bool(accumulate)))
@@ -385,10 +385,10 @@ def conv_resample_stack(rt, x: cla.Array, f, terms: Terms, q: int, axis: int) ->
     shape[0], shape[axis] = len(terms), n_out
     out = _empty(rt, shape)
     group = rows_group(rt)
-    kernel = rt.kernel(KFILE, "conv_resample_rows",
-                       _resample_options(q) + [f"-DRS_INNER={inner}", f"-DCONV_RUN={run}"])
+    kernel = rt.kernel(KFILE, "conv_resample_rows", _resample_options(q) + [f"-DCONV_RUN={run}"])
     rt.launch(kernel, (group, max(outer, 1), len(terms)), (group, 1, 1), x.data, out.data, farr.data,
-              np.int32(flen), np.int32(outer), np.int32(n), np.int32(n_out), table.data, np.int32(stride),
+              np.int32(flen), np.int32(outer), np.int32(n), np.int32(n_out), np.int32(inner), table.data,
+              np.int32(stride),
               cl.LocalMemory(4 * staged), cl.LocalMemory(4 * n * inner))
     return out
 
@@ -414,10 +414,10 @@ def resample_conv_stack_bwd(rt, v_out: cla.Array, q: int, n_in: int, f, terms: T
     if tuple(out.shape) != tuple(shape):
         raise ValueError(f"out must be {tuple(shape)}, got {out.shape}")
     group = rows_group(rt)
-    kernel = rt.kernel(KFILE, "resample_conv_rows_bwd",
-                       _resample_options(q) + [f"-DRS_INNER={inner}", f"-DCONV_RUN={run}"])
+    kernel = rt.kernel(KFILE, "resample_conv_rows_bwd", _resample_options(q) + [f"-DCONV_RUN={run}"])
     rt.launch(kernel, (group, max(outer, 1), len(terms)), (group, 1, 1), v_out.data, out.data, farr.data,
-              np.int32(flen), np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(bool(accumulate)),
+              np.int32(flen), np.int32(outer), np.int32(n_in), np.int32(n_out), np.int32(inner),
+              np.int32(bool(accumulate)),
               table.data, np.int32(stride), cl.LocalMemory(4 * staged))
     return out
 
