@@ -252,24 +252,29 @@ def test_oclgrind_conv_stack_terms(rt, run, monkeypatch):
         assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
 
 
+def _row_kernels_case(monkeypatch, group, seed):
+    """The CPU build of the row kernels with `group` work-items per line: (filters [3, 13], two
+    output slots of one and two terms, the terms read the other way for the adjoint)."""
+    monkeypatch.setattr(ops, "conv_run", lambda rt: ops.CONV_RUN_CPU)
+    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
+    f = np.random.default_rng(seed).standard_normal((3, 13)).astype(np.float32)
+    terms = (((1, 2),), ((0, 0), (1, 1)))
+    back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+    return f, terms, back
+
+
 @pytest.mark.oclgrind
 @pytest.mark.parametrize("group", [1, 4])
 def test_oclgrind_staged_row_passes(rt, group, monkeypatch):
     # the row passes staged in local memory (conv_axis_rows / conv_axis_rows_bwd) with one and with
     # four work-items per line (the barrier after staging), both borders, two-term slots, a line
     # length that ends in a short run, the adjoint accumulating
-    monkeypatch.setattr(ops, "conv_run", lambda rt: ops.CONV_RUN_CPU)
-    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
-    f = np.random.default_rng(6).standard_normal((3, 13)).astype(np.float32)
-    terms = (((1, 2),), ((0, 0), (1, 1)))
-    back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+    f, terms, back = _row_kernels_case(monkeypatch, group, 6)
     x = np.random.default_rng(7).standard_normal((2, 3, 19, 3)).astype(np.float32)
-    for border in ("reflect", "zero"):
+    for border in ("zero", "reflect"):   # Ax: the reflect border's, for the adjoint below
         Ax = ops.conv_axis_stack(rt, dev(rt, x), f, terms, 2, border=border).get()
-        if border == "reflect":
-            np.testing.assert_allclose(Ax, F.conv_axis_stack(x, f, terms, 2), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(Ax, F.conv_axis_stack(x, f, terms, 2), rtol=1e-5, atol=1e-5)
     y = np.random.default_rng(8).standard_normal(Ax.shape).astype(np.float32)
-    Ax = ops.conv_axis_stack(rt, dev(rt, x), f, terms, 2).get()
     out = dev(rt, x)
     ATy = ops.conv_axis_stack_bwd(rt, dev(rt, y), f, back, 2, out=out, accumulate=True).get() - x
     assert float(np.sum(Ax * y)) == pytest.approx(float(np.sum(x * ATy)), rel=1e-4, abs=1e-4)
@@ -280,11 +285,7 @@ def test_oclgrind_staged_row_passes(rt, group, monkeypatch):
 def test_oclgrind_row_pass_and_resampling_in_one_launch(rt, group, monkeypatch):
     # a row pass and its resampling in one launch (conv_resample_rows) and their adjoint
     # (resample_conv_rows_bwd), two-term slots, accumulating, against the two launches each
-    monkeypatch.setattr(ops, "conv_run", lambda rt: ops.CONV_RUN_CPU)
-    monkeypatch.setattr(ops, "rows_group", lambda rt: group)
-    f = np.random.default_rng(9).standard_normal((3, 13)).astype(np.float32)
-    terms = (((1, 2),), ((0, 0), (1, 1)))
-    back = tuple(tuple((t, g) for t, tt in enumerate(terms) for s2, g in tt if s2 == s) for s in range(2))
+    f, terms, back = _row_kernels_case(monkeypatch, group, 9)
     x = np.random.default_rng(13).standard_normal((2, 2, 19, 3)).astype(np.float32)
     got = ops.conv_resample_stack(rt, dev(rt, x), f, terms, 2, 2).get()
     np.testing.assert_allclose(got, F.resample_axis(F.conv_axis_stack(x, f, terms, 2), 2, 2), rtol=1e-5, atol=1e-5)

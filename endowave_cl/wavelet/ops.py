@@ -183,9 +183,8 @@ def _conv_stack(rt, kname: str, x: cla.Array, f, terms: Terms, axis: int, out: O
 
 def rows_group(rt) -> int:
     """Work-items per line (one work-group) of the staged row passes on rt's device."""
-    caps = getattr(rt, "caps", None)
-    simt = bool(caps.simt) if caps is not None else bool(getattr(rt, "is_gpu", False))
-    return min(ROWS_GROUP_SIMT, rt.max_work_group_size) if simt else 1
+    from ..ops.rasterize import simt_device
+    return min(ROWS_GROUP_SIMT, rt.max_work_group_size) if simt_device(rt) else 1
 
 
 def _staged_rows_floats(rt, kname: str, n: int, inner: int, flen: int, nterm: int, run: int) -> int:
