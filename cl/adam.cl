@@ -247,6 +247,20 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
                          inv_bc1, inv_sqrt_bc2);                                        \
     }
 
+#ifndef ROWS_AHEAD
+#define ROWS_AHEAD 4   /* adam_step_rows: work-items between a row's prefetch and its update */
+#endif
+/* every 64-byte line of row ra of group k's parameters and moments (row_k floats from ra row_k) */
+#define PREFETCH_ROW(k)                                                                 \
+    for (int c = 0; c < row##k; c += 16) {                                              \
+        PREFETCH(p##k + ra * row##k + c); PREFETCH(m##k + ra * row##k + c);             \
+        PREFETCH(v##k + ra * row##k + c);                                               \
+    }                                                                                   \
+    if (row##k > 0) {                                                                   \
+        PREFETCH(p##k + (ra + 1) * row##k - 1); PREFETCH(m##k + (ra + 1) * row##k - 1); \
+        PREFETCH(v##k + (ra + 1) * row##k - 1);                                         \
+    }
+
 __kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),
                              ROW_ARGS(4), ROW_ARGS(5), ROW_ARGS(6),
                              const float beta1, const float beta2,
@@ -257,7 +271,17 @@ __kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),
                              __global const int *visible,   /* [L] compact projected radius */
                              const int skip_culled) {
     const int i = get_global_id(0);
-    if (i >= n_rows || (skip_culled && visible[i] == 0)) return;
+    if (i >= n_rows) return;
+#if HAVE_PREFETCH && ROWS_AHEAD > 0
+    /* the row ROWS_AHEAD work-items on: its lines in every array, requested while this row is
+     * updated (the selected rows are scattered, so the hardware's stream prefetch misses them) */
+    if (i + ROWS_AHEAD < n_rows) {
+        const int ra = rows[i + ROWS_AHEAD];
+        PREFETCH_ROW(0) PREFETCH_ROW(1) PREFETCH_ROW(2) PREFETCH_ROW(3) PREFETCH_ROW(4)
+        PREFETCH_ROW(5) PREFETCH_ROW(6)
+    }
+#endif
+    if (skip_culled && visible[i] == 0) return;
     const int r = rows[i];
     ROW_UPDATE(0)
     ROW_UPDATE(1)

@@ -64,6 +64,9 @@ __kernel void live_rows(const int n, __global const int *flags, __global const i
 }
 
 #ifdef SH_W
+#ifndef ROWS_AHEAD
+#define ROWS_AHEAD 4   /* gather_params: work-items between a row's prefetch and its copy */
+#endif
 /* The parameters of the selected rows: row r of each output is row rows[r] of its input (one
  * work-item per selected row).  -DSH_W, -DPHASE_W: floats per row of sh and phase. */
 __kernel void gather_params(const int n_rows, __global const int *rows,
@@ -77,6 +80,18 @@ __kernel void gather_params(const int n_rows, __global const int *rows,
 {
     const int r = get_global_id(0);
     if (r >= n_rows) return;
+#if HAVE_PREFETCH && ROWS_AHEAD > 0
+    /* the row ROWS_AHEAD work-items on, requested while this one is copied (the selected rows are
+     * scattered, so the hardware's stream prefetch misses them) */
+    if (r + ROWS_AHEAD < n_rows) {
+        const int a = rows[r + ROWS_AHEAD];
+        PREFETCH(means + a); PREFETCH(scales + a); PREFETCH(quat_l + a); PREFETCH(quat_r + a);
+        PREFETCH(opacity + a);
+        for (int c = 0; c < SH_W; c += 16) PREFETCH(sh + a * SH_W + c);
+        PREFETCH(sh + (a + 1) * SH_W - 1);
+        PREFETCH(phase + a * PHASE_W); PREFETCH(phase + (a + 1) * PHASE_W - 1);
+    }
+#endif
     const int i = rows[r];
     o_means[r] = means[i];
     o_scales[r] = scales[i];
