@@ -98,6 +98,10 @@ class Gaussians:
     def as_dict(self) -> Dict[str, np.ndarray]:
         return {n: getattr(self, n) for n in PARAM_NAMES}
 
+    def take(self, rows: np.ndarray) -> "Gaussians":
+        """The Gaussians of the given rows (indices or a boolean mask), in that order."""
+        return Gaussians(**{n: getattr(self, n)[rows] for n in PARAM_NAMES})
+
     @classmethod
     def empty(cls, degree: int = SH_DEGREE, nt: int = TEMPORAL_FREQS) -> "Gaussians":
         K = num_sh_bases(degree)

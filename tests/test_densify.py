@@ -152,3 +152,32 @@ def test_densify_then_adam_remap_zeroes_new_rows(rt):
     st = opt.state_dict()
     np.testing.assert_array_equal(st["exp_avg"]["opacity"][:3], old["exp_avg"]["opacity"][:3])
     assert np.all(st["exp_avg"]["opacity"][3:] == 0) and np.all(st["exp_avg_sq"]["sh"][3:] == 0)
+
+
+def test_temporal_row_order_keeps_the_rows_alive_at_one_time_together():
+    from endowave_cl.reference.select import live_flags_ref
+    from endowave_cl.train.densify import temporal_row_order
+    g = Gaussians.random(3000, seed=4)
+    rng = np.random.default_rng(4)
+    g.means[:, 3] = rng.uniform(-0.2, 1.2, len(g))   # time centres inside and past the sequence
+    g.scales[:, 3] = rng.uniform(-6.0, 0.0, len(g))   # lifetimes from a few frames to all of it
+    g.scales[7, 0] = 1e30                             # bad rows (overflow, NaN) still get a place
+    g.means[9, 3] = np.nan
+    twin = g.take(np.r_[np.arange(len(g)), 5])        # row 3000: an exact copy of row 5
+    order = temporal_row_order(twin)
+    assert np.array_equal(np.sort(order), np.arange(len(twin)))      # a permutation
+    assert np.flatnonzero(order == 5)[0] < np.flatnonzero(order == 3000)[0]   # ties keep their order
+    assert len(temporal_row_order(g.take(np.zeros(0, int)))) == 0
+
+    def runs(rows):   # runs of consecutive rows
+        return 1 + int(np.count_nonzero(np.diff(np.sort(rows)) != 1)) if len(rows) else 0
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    before = after = 0
+    for t in np.linspace(0.0, 1.0, 9):
+        with np.errstate(over="ignore", invalid="ignore"):   # the overflowing row
+            live = np.flatnonzero(live_flags_ref(twin, t, 1.0))
+        assert 0 < len(live) < len(twin)
+        before += runs(live)
+        after += runs(inv[live])
+    assert after < 0.25 * before, (before, after)

@@ -38,6 +38,10 @@ Output order: surviving original rows (ascending old index), then clones, then s
 ``source_index[i]`` is the old row that new row i came from (clones and children: their parent);
 ``stats["is_new"]`` marks the rows the trainer must give zero Adam moments, and
 ``moment_source_index`` turns the pair into what ``DeviceAdam.remap`` takes.
+
+``temporal_row_order`` is the order the trainer then stores the rows in (a permutation: every
+Gaussian computes what it did): the Gaussians alive at any one time lie in few runs of rows, so
+that the steps' row gathers and Adam on the selected rows (ops/select.py) read whole cache lines.
 """
 from __future__ import annotations
 
@@ -46,7 +50,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from ..gaussians import PARAM_NAMES, Gaussians, covariance_4d
+from ..gaussians import MARGINAL_CULL, PARAM_NAMES, Gaussians, covariance_4d
 from .motion import gaussian_from_covariance, motion_of, moving_covariance, spatial_size
 
 
@@ -87,6 +91,29 @@ def split_along_major_axis(g: Gaussians, k: int, divisor: float = 1.6):
     cond = cond - ((1.0 - child_sd ** 2) * lam[:, 2])[:, None, None] * axis[:, :, None] * axis[:, None, :]
     log_s, q_l, q_r = gaussian_from_covariance(moving_covariance(cond, sigma_t, vel))
     return means.astype(np.float32), log_s.astype(np.float32), q_l.astype(np.float32), q_r.astype(np.float32)
+
+
+LIFETIME_CLASSES = 8   # temporal_row_order: live-interval lengths in eighths of [0, 1]
+
+
+def temporal_row_order(g: Gaussians) -> np.ndarray:
+    """int64 [N]: g's rows ordered by the length of their live interval within the sequence's times
+    [0, 1] (rounded to 1 / LIFETIME_CLASSES, longest first), then by its centre; ties keep their
+    order (a stable sort, so a clone stays behind the row it was cloned from).  A Gaussian is alive
+    at t where its marginal temporal weight exp(-(t - mu_t)^2 / (2 Sigma_tt)) is at least
+    MARGINAL_CULL (ops/select.py), an interval of half-width sqrt(-2 ln(MARGINAL_CULL) Sigma_tt)
+    around mu_t: in this order the rows alive at one time are a band of centres in each class."""
+    n = len(g)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    with np.errstate(all="ignore"):
+        stt = covariance_4d(g)[:, 3, 3]                                            # [N]
+        half = np.sqrt(np.maximum(stt, 0.0) * (-2.0 * math.log(MARGINAL_CULL)))
+        mu = g.means[:, 3].astype(np.float64)
+        lo, hi = np.clip(mu - half, 0.0, 1.0), np.clip(mu + half, 0.0, 1.0)
+        length = np.where(np.isfinite(hi - lo), hi - lo, 0.0)                      # NaN: class 0
+        centre = np.where(np.isfinite(lo + hi), 0.5 * (lo + hi), 0.0)
+    return np.lexsort((centre, -np.round(length * LIFETIME_CLASSES))).astype(np.int64)
 
 
 def _take(g: Gaussians, rows: np.ndarray) -> Dict[str, np.ndarray]:

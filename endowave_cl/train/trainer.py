@@ -316,14 +316,16 @@ class Trainer:
     # ------------------------------------------------------------------ density control
     def densify(self):
         """3DGS density control in 4D on the host: clone, split (children sampled in space-time), prune."""
-        from .densify import densify_and_prune, moment_source_index
+        from .densify import densify_and_prune, moment_source_index, temporal_row_order
         self._run.check_parameters(self)     # non-finite or runaway parameters stop the run here
         info: Dict[str, object] = {}
         new_g, source = densify_and_prune(
             download(self.params), self.stats["grad_accum"].get(), self.stats["count"].get(),
             self.stats["max_radius"].get(), self.cfg, self.extent,
             prune_big=self.step > self.cfg.opacity_reset_every, stats=info)
-        self.set_gaussians(new_g, moment_source_index(source, info["is_new"]))  # new rows: zero moments
+        order = temporal_row_order(new_g)   # the rows alive at one time together (a permutation)
+        self.set_gaussians(new_g.take(order),
+                           moment_source_index(source[order], info["is_new"][order]))  # new rows: zero moments
 
     def set_gaussians(self, g: Gaussians, source_index: np.ndarray):
         """Replace the parameters; row i's Adam moments come from old row source_index[i] (< 0: zero)."""
