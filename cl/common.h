@@ -36,12 +36,8 @@ inline void store4(__global float *p, float4 v) {
  *   sqrt1, sqrt4, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction);
- *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr);
- *   FORCE_INLINE a function PoCL must inline (it leaves large inline functions with pointer
- *                arguments out of line, their vectors passed through memory); plain inline elsewhere
- *                (Oclgrind cannot create a kernel whose callees are always_inline). */
+ *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr). */
 #if defined(HOST_CLANG) && HOST_CLANG
-#define FORCE_INLINE inline __attribute__((always_inline))
 #define HAVE_PREFETCH 1   /* kernels leave out the loads that only compute prefetch addresses when 0 */
 #define PREFETCH(p) __builtin_prefetch(p)
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
@@ -55,7 +51,6 @@ inline float8 sqrt8(float8 x) {
                     __builtin_sqrtf(x.s6), __builtin_sqrtf(x.s7));
 }
 #else
-#define FORCE_INLINE inline
 #define HAVE_PREFETCH 0
 #define PREFETCH(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }

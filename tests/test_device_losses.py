@@ -66,32 +66,6 @@ def test_device_losses_match_torch(rt, case, size, delta):
         assert not got[f["mask"] == 0].any()
 
 
-@pytest.mark.parametrize("size", [(1, 5), (3, 7), (8, 8), (9, 13), (16, 20)])
-@pytest.mark.parametrize("case", [dict(), dict(depth=False, flow=False), dict(mask=False, flow_valid=False)])
-def test_image_loss_terms_lanes_give_the_one_pixel_bits(rt, monkeypatch, size, case):
-    # cl/image_loss.cl image_loss_terms with 8 pixels per work-item (CPU drivers) against one pixel
-    # per work-item (SIMT devices): the same gradients and partial sums, bit for bit, for images
-    # shorter than a work-item, with a partial last work-item and a partial last work-group, and on
-    # both sides of the flow's Huber threshold
-    import endowave_cl.train.device_losses as dl
-    H, W = size
-    f, feats = frame(40 + H * W, H, W, **case)
-    cfg = TrainConfig(use_wavelet=False, lambda_flow=0.05, flow_huber_delta=2.0)
-    tgt = prepare_targets(rt, f["image"], f["mask"], f["depth"], f["flow"], f["flow_valid"])
-    dev = cla.to_device(rt.queue, feats)
-    got = {}
-    for lanes in (1, dl.LOSS_VW):
-        monkeypatch.setattr(dl, "loss_lanes", lambda rt, _lanes=lanes: _lanes)
-        pending = dl.image_losses_enqueue(rt, dev, tgt, cfg, CHANNELS)
-        got[lanes] = pending.v_features.get(), pending.sums["image"].get()
-    for a, b in zip(got[1], got[dl.LOSS_VW]):
-        assert a.shape == b.shape
-        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
-    if case.get("flow", True):   # both Huber sides were taken
-        e = np.linalg.norm(feats[..., 4:6] - f["flow"], axis=-1)
-        assert (e <= 2.0).any() and (e > 2.0).any()
-
-
 @pytest.mark.parametrize("mask", [True, False])
 def test_device_losses_add_the_wavelet_term(rt, mask):
     # the wavelet term's difference and masked gradient are fused into the image-loss kernels

@@ -26,14 +26,6 @@ from ..loss_constants import GAUSSIAN_FLOW_DEPTH_TOL, gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
-LOSS_VW = 8         # pixels per work-item of image_loss_terms on devices without SIMT (lanes of float8)
-
-
-def loss_lanes(rt) -> int:
-    """Pixels per work-item of cl/image_loss.cl image_loss_terms on rt's device: LOSS_VW where the
-    driver runs work-items one after another (a CPU), 1 on SIMT devices (the same bits either way)."""
-    from ..ops.rasterize import simt_device
-    return 1 if simt_device(rt) else LOSS_VW
 NMAP, NTMAP, NGRAD, NSUM = 9, 6, 9, 5   # as in cl/image_loss.cl
 
 
@@ -165,9 +157,8 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     partial = rt.empty((groups, NSUM), np.float32)
     w_rgb = cfg.lambda_rgb / tgt.n_rgb
     dummy = tgt.mask.data
-    lanes = loss_lanes(rt)   # a work-group still covers LOCAL pixels: the same partial sums
     rt.launch(
-        rt.kernel(KFILE, "image_loss_terms", opts + [f"-DLOSS_VW={lanes}"]), (gsize[0] // lanes,), (LOCAL // lanes,),
+        rt.kernel(KFILE, "image_loss_terms", opts), gsize, (LOCAL,),
         features.data, tgt.image.data, tgt.mask.data, blurred.data, tgt.ssim_target.data,
         tgt.depth.data if use_depth else dummy, tgt.depth_w.data if use_depth else dummy,
         tgt.flow.data if use_flow else dummy, tgt.flow_w.data if use_flow else dummy,
