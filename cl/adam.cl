@@ -247,18 +247,12 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
                          inv_bc1, inv_sqrt_bc2);                                        \
     }
 
-#ifndef ROWS_AHEAD
-#define ROWS_AHEAD 4   /* adam_step_rows: work-items between a row's prefetch and its update */
-#endif
-/* every 64-byte line of row ra of group k's parameters and moments (row_k floats from ra row_k) */
+/* every line of row ra of group k's parameters and moments (row_k floats from ra row_k) */
 #define PREFETCH_ROW(k)                                                                 \
-    for (int c = 0; c < row##k; c += 16) {                                              \
-        PREFETCH(p##k + ra * row##k + c); PREFETCH(m##k + ra * row##k + c);             \
-        PREFETCH(v##k + ra * row##k + c);                                               \
-    }                                                                                   \
     if (row##k > 0) {                                                                   \
-        PREFETCH(p##k + (ra + 1) * row##k - 1); PREFETCH(m##k + (ra + 1) * row##k - 1); \
-        PREFETCH(v##k + (ra + 1) * row##k - 1);                                         \
+        prefetch_floats(p##k + ra * row##k, row##k);                                    \
+        prefetch_floats(m##k + ra * row##k, row##k);                                    \
+        prefetch_floats(v##k + ra * row##k, row##k);                                    \
     }
 
 __kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),

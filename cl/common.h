@@ -32,14 +32,23 @@ inline void store4(__global float *p, float4 v) {
  * instructions there, while PoCL's own prefetch() does nothing and its sqrt is an out-of-line call
  * (the caller's vectors spilled around it).  Elsewhere the OpenCL builtins.
  *   PREFETCH(p)  a hint to bring the cache line at p closer (prefetcht0 on x86): gathers whose
- *                addresses are known ahead;
+ *                addresses are known ahead (prefetch_floats: every line of a row; the kernels
+ *                that gather scattered rows ask for the row ROWS_AHEAD work-items ahead);
  *   sqrt1, sqrt4, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction);
  *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr). */
+#ifndef ROWS_AHEAD
+#define ROWS_AHEAD 4   /* adam_step_rows, gather_params: work-items between a row's prefetch and its use */
+#endif
 #if defined(HOST_CLANG) && HOST_CLANG
 #define HAVE_PREFETCH 1   /* kernels leave out the loads that only compute prefetch addresses when 0 */
 #define PREFETCH(p) __builtin_prefetch(p)
+/* every 64-byte line of the n > 0 floats from p */
+inline void prefetch_floats(__global const float *p, const int n) {
+    for (int c = 0; c < n; c += 16) PREFETCH(p + c);
+    PREFETCH(p + n - 1);
+}
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
 inline int clz1(uint x) { return __builtin_clz(x); }   /* x != 0 */
 inline float4 sqrt4(float4 x) {

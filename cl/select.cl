@@ -64,9 +64,6 @@ __kernel void live_rows(const int n, __global const int *flags, __global const i
 }
 
 #ifdef SH_W
-#ifndef ROWS_AHEAD
-#define ROWS_AHEAD 4   /* gather_params: work-items between a row's prefetch and its copy */
-#endif
 /* The parameters of the selected rows: row r of each output is row rows[r] of its input (one
  * work-item per selected row).  -DSH_W, -DPHASE_W: floats per row of sh and phase. */
 __kernel void gather_params(const int n_rows, __global const int *rows,
@@ -87,9 +84,8 @@ __kernel void gather_params(const int n_rows, __global const int *rows,
         const int a = rows[r + ROWS_AHEAD];
         PREFETCH(means + a); PREFETCH(scales + a); PREFETCH(quat_l + a); PREFETCH(quat_r + a);
         PREFETCH(opacity + a);
-        for (int c = 0; c < SH_W; c += 16) PREFETCH(sh + a * SH_W + c);
-        PREFETCH(sh + (a + 1) * SH_W - 1);
-        PREFETCH(phase + a * PHASE_W); PREFETCH(phase + (a + 1) * PHASE_W - 1);
+        prefetch_floats(sh + a * SH_W, SH_W);
+        prefetch_floats(phase + a * PHASE_W, PHASE_W);
     }
 #endif
     const int i = rows[r];
