@@ -203,12 +203,13 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                     const floatV dx = (floatV)(mean.x) - px;
                     const floatV dy = (floatV)(mean.y) - py;
                     const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
-                    intV use = ((intV)(b * BATCH + j) < last) & (power <= 0.0f) & (power >= l_thr[j]);
+                    intV use = lane_mask((intV)(b * BATCH + j) < last) & lane_mask(power <= 0.0f) &
+                               lane_mask(power >= l_thr[j]);   /* lane_mask: vexp.h */
                     if (VANY(use)) {
                         const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
                         const floatV raw = cop.w * G;
                         const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
-                        use &= alpha >= ALPHA_MIN;
+                        use &= lane_mask(alpha >= ALPHA_MIN);
                         if (VANY(use)) {
                             floatV term[4 * NSV];   /* per-lane gradient terms, zeros past NV */
                             const floatV inv_om = 1.0f / (1.0f - alpha);
@@ -226,7 +227,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
 #pragma unroll
                             for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
                             /* the ALPHA_MAX clamp blocks the gradient to power and opac */
-                            const intV grad = use & (raw <= ALPHA_MAX);
+                            const intV grad = use & lane_mask(raw <= ALPHA_MAX);
                             const floatV v_power = grad != 0 ? v_al * alpha : (floatV)(0.0f);
                             term[0] = -v_power * (cop.x * dx + cop.y * dy);
                             term[1] = -v_power * (cop.z * dy + cop.y * dx);

@@ -103,6 +103,28 @@ inline float4 vhsum4(floatV a, floatV b, floatV c, floatV d) {
 #define VALL(m) (vred_and(m) != 0)    /* every lane true */
 #define VANY(m) (vred_or(m) != 0)     /* some lane true */
 
+/* The lane mask m, unchanged, held in 32-bit lanes.  LLVM keeps a mask made only of comparisons as
+ * one bit per lane; on x86 without AVX-512 it stores 16 such bits as bytes and converts them back
+ * at every select and VANY (about 30 instructions per hit of rasterize_vec_bwd).  An empty asm
+ * that takes and returns the mask in vector registers makes it opaque, so the masks stay in
+ * 32-bit lanes as the comparisons produce them.  Other targets (and Oclgrind's SPIR) take m as it
+ * is. */
+inline intV lane_mask(intV m) {
+#if defined(__x86_64__) || defined(__i386__)
+#if VW == 16
+    int8 lo = m.lo, hi = m.hi;
+    __asm__("" : "+x"(lo));
+    __asm__("" : "+x"(hi));
+    return (int16)(lo, hi);
+#else
+    __asm__("" : "+x"(m));
+    return m;
+#endif
+#else
+    return m;
+#endif
+}
+
 /* exp(x <= 0) on floatVW: the polynomial of raster_common.h, lane for lane (== exp_nonpos) */
 inline floatV vexp_nonpos(floatV x) {
     EXP_NONPOS_BODY(floatV, intV, convert_intV, convert_floatV, as_floatV, as_intV, x)
