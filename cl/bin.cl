@@ -4,7 +4,10 @@
  *   bin_counts     entries per Gaussian: tiles_touched for visible ones (radius > 0), else 0
  *   bin_gaussians  per Gaussian, its (key, value) pairs at its offset, tiles of its rect
  *                  row-major; key = (tile_id << 32) | as_uint(depth), value = Gaussian id
- *   tile_ranges    per sorted entry, marks where its tile's run starts and ends */
+ *   tile_ranges    per sorted entry, marks where its tile's run starts and ends
+ *   depth_keys, counts_in_order, bin_in_order
+ *                  bin_and_sort's two-stage order: the Gaussians sorted by depth first, their
+ *                  entries then emitted in that order with the tile alone as the key */
 #include "common.h"
 
 /* counts[i] = radius[i] > 0 ? max(tiles_touched[i], 0) : 0, and the least and greatest depth bit
@@ -43,18 +46,13 @@ void bin_counts(__global const int *radius,        /* [N] */
 
 /* offsets [N + 1]: exclusive scan of counts followed by the total M.  Gaussian i owns
  * entries [offsets[i], offsets[i + 1]); it writes at most that many (a rect larger than
- * tiles_touched is cut short rather than overrunning its neighbour).
- * key = (tile << dshift) | (as_uint(depth) - dmin): dmin = 0, dshift = 32 give the full key; with
- * dmin the least depth pattern and dshift the bits of (max - min), the keys keep the same order in
- * fewer bits (fewer radix-sort passes). */
+ * tiles_touched is cut short rather than overrunning its neighbour). */
 __kernel void bin_gaussians(__global const int *rect,     /* [N, 4] x0, y0, x1, y1 (exclusive) */
                             __global const float *depth,  /* [N] */
                             __global const int *radius,   /* [N] */
                             __global const int *offsets,  /* [N + 1] */
                             const int n,
                             const int tiles_x,
-                            const uint dmin,
-                            const int dshift,
                             __global ulong *keys,         /* [M] */
                             __global int *values) {       /* [M] */
     const int i = get_global_id(0);
@@ -62,14 +60,14 @@ __kernel void bin_gaussians(__global const int *rect,     /* [N, 4] x0, y0, x1, 
     if (radius[i] <= 0) return;
     int k = offsets[i];
     const int end = offsets[i + 1];
-    const ulong dbits = (ulong)(as_uint(depth[i]) - dmin);
+    const ulong dbits = (ulong)as_uint(depth[i]);
     const int x0 = rect[4 * i + 0], y0 = rect[4 * i + 1];
     const int x1 = rect[4 * i + 2], y1 = rect[4 * i + 3];
     for (int ty = y0; ty < y1; ++ty) {
         for (int tx = x0; tx < x1; ++tx) {
             if (k >= end) return;
             const ulong tile = (ulong)(ty * tiles_x + tx);
-            keys[k] = (tile << dshift) | dbits;
+            keys[k] = (tile << 32) | dbits;
             values[k] = i;
             ++k;
         }
@@ -92,4 +90,66 @@ __kernel void tile_ranges(__global const ulong *sorted_keys, /* [M] */
     if (tile >= (uint)n_tiles) return;
     if (tile != prev) ranges[2 * tile + 0] = k;
     if (tile != next) ranges[2 * tile + 1] = k + 1;
+}
+
+/* Stage 1 of bin_and_sort (ops/binning.py): keys[i] = as_uint(depth[i]) - dmin for the Gaussians
+ * that have entries (counts[i] > 0; dmin their least depth pattern), 0 for the others (they emit
+ * nothing, so where they sort does not matter); ids[i] = i.  A stable sort of these keys gives the
+ * Gaussians in depth order, equal depths in id order. */
+__kernel void depth_keys(__global const float *depth,   /* [N] */
+                         __global const int *counts,    /* [N] bin_counts */
+                         const int n,
+                         const uint dmin,
+                         __global ulong *keys,          /* [N] */
+                         __global int *ids) {           /* [N] */
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    keys[i] = counts[i] > 0 ? (ulong)(as_uint(depth[i]) - dmin) : 0ul;
+    ids[i] = i;
+}
+
+/* counts_r[r] = counts[order[r]]: the entry counts in depth order (their scan places the entries) */
+__kernel void counts_in_order(__global const int *order,    /* [N] Gaussian ids in depth order */
+                              __global const int *counts,   /* [N] */
+                              const int n,
+                              __global int *counts_r) {     /* [N] */
+    const int r = get_global_id(0);
+    if (r < n) counts_r[r] = counts[order[r]];
+}
+
+#ifndef RECT_AHEAD
+#define RECT_AHEAD 16   /* bin_in_order: ranks between a rect's prefetch and its use */
+#endif
+/* Stage 2: bin_gaussians in depth order.  The Gaussian of rank r (g = order[r]) writes its entries
+ * at offsets_r[r] .. offsets_r[r + 1], the tiles of its rect row-major, key = tile id, value = g.
+ * A stable sort by tile then leaves each tile's entries in depth order, equal depths in id order:
+ * the order of sorting (tile << 32 | depth bits) keys emitted in id order. */
+__kernel void bin_in_order(__global const int *rect,       /* [N, 4] x0, y0, x1, y1 (exclusive) */
+                           __global const int *order,      /* [N] */
+                           __global const int *offsets_r,  /* [N + 1] scan of counts_in_order */
+                           const int n,
+                           const int tiles_x,
+                           __global ulong *keys,           /* [M] */
+                           __global int *values) {         /* [M] */
+    const int r = get_global_id(0);
+    if (r >= n) return;
+#if HAVE_PREFETCH
+    /* the rect of the Gaussian RECT_AHEAD ranks on: the ranks visit the rects in depth order,
+     * scattered over the array, which the sort's passes have pushed out of the nearer caches */
+    if (r + RECT_AHEAD < n) PREFETCH(rect + 4 * order[r + RECT_AHEAD]);
+#endif
+    int k = offsets_r[r];
+    const int end = offsets_r[r + 1];
+    if (k >= end) return;
+    const int g = order[r];
+    const int x0 = rect[4 * g + 0], y0 = rect[4 * g + 1];
+    const int x1 = rect[4 * g + 2], y1 = rect[4 * g + 3];
+    for (int ty = y0; ty < y1; ++ty) {
+        for (int tx = x0; tx < x1; ++tx) {
+            if (k >= end) return;
+            keys[k] = (ulong)(ty * tiles_x + tx);
+            values[k] = g;
+            ++k;
+        }
+    }
 }

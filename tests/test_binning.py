@@ -170,13 +170,14 @@ def test_bin_and_sort_tiny(rt):
     _check_chain(rt, rect, depth, radius, tt, 80, 40)
 
 
-# --- compact keys (bin_and_sort keys only the depth bits the visible Gaussians span) ------------
+# --- the two-stage order (bin_and_sort: depth first, then the tile) -----------------------------
 
 @pytest.mark.parametrize("depths", ["equal", "narrow", "negative", "culled_extremes"])
-def test_bin_and_sort_compact_keys_keep_the_order(rt, depths):
-    """bin_and_sort's compact keys (tile << d | depth bits - least bits) sort exactly as the full
-    keys do: all depths equal (d = 0), a narrow range, sign-bit patterns (negative depths sort after
-    positive ones as uint bits), and culled Gaussians with extreme depths that must not widen d."""
+def test_bin_and_sort_depth_first_keeps_the_order(rt, depths):
+    """bin_and_sort's two stages (the Gaussians sorted by depth, their entries emitted in that order
+    and sorted by tile) give exactly the order of the full keys: all depths equal (no depth bits), a
+    narrow range, sign-bit patterns (negative depths sort after positive ones as uint bits), and
+    culled Gaussians with extreme depths that must not widen the depth bits."""
     rng = np.random.default_rng(31)
     rect, depth, radius, tt = _scene(rng, 2000, 13, 9, max_side=3)
     if depths == "equal":
@@ -188,6 +189,14 @@ def test_bin_and_sort_compact_keys_keep_the_order(rt, depths):
     else:
         depth[radius == 0] = np.where(rng.random(int((radius == 0).sum())) < 0.5, 1e-30, 1e30)
     _check_chain(rt, rect, depth, radius, tt, 13 * 16 - 5, 9 * 16)
-    _, dshift = B._bin(rt, *_dev(rt, rect, depth, radius, tt), 13, compact=True)
-    vis = depth[radius > 0].view(np.uint32).astype(np.int64)
-    assert dshift == int(vis.max() - vis.min()).bit_length()
+    d_rect, d_depth, d_radius, d_tt = _dev(rt, rect, depth, radius, tt)
+    counts, dbounds = B._counts(rt, d_radius, d_tt, d_depth)
+    order, dbits = B.depth_order(rt, d_depth, counts, dbounds)
+    vis = radius > 0
+    bits = depth.view(np.uint32).astype(np.int64)
+    assert dbits == int(bits[vis].max() - bits[vis].min()).bit_length()
+    # the Gaussians with entries in (depth bits, id) order; the others may lie anywhere
+    o = order.get()
+    assert sorted(o.tolist()) == list(range(depth.size))
+    o_vis = o[vis[o]]
+    np.testing.assert_array_equal(o_vis, np.flatnonzero(vis)[np.argsort(bits[vis], kind="stable")])

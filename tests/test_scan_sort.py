@@ -193,6 +193,28 @@ def test_default_config_by_device_and_size():
         assert 4 * (1 << cfg.radix_bits) * cfg.wg <= 4 << 10 and cfg.wg * 2 * 4 * (1 << cfg.radix_bits) > 4 << 10
 
 
+def test_config_for_bits_one_wide_pass_on_cpus(rt):
+    """On a CPU, keys of 9 to CPU_ONE_PASS_BITS bits take one pass of that many bits (and sort as
+    stable argsort); fewer or more bits, and GPUs, keep the default configuration."""
+    from types import SimpleNamespace
+    cpu = SimpleNamespace(caps=SimpleNamespace(simt=None, max_work_group_size=4096, local_mem_size=1 << 19))
+    gpu = SimpleNamespace(caps=SimpleNamespace(simt=32, max_work_group_size=1024, local_mem_size=48 << 10))
+    for bits in range(1, 16):
+        cfg = R.config_for_bits(cpu, 1000, bits)
+        one = R.CPU_CONFIG.radix_bits < bits <= R.CPU_ONE_PASS_BITS
+        assert cfg == (R.CPU_CONFIG if not one else R.SortConfig(**{**vars(R.CPU_CONFIG), "radix_bits": bits}))
+        assert R.config_for_bits(gpu, 1000, bits) == R.default_config(gpu, 1000)
+    rng = np.random.default_rng(9)
+    for bits in (9, R.CPU_ONE_PASS_BITS):
+        cfg = R.config_for_bits(rt, 5000, bits)
+        keys = rng.integers(0, 1 << bits, small(5000, 300)).astype(np.uint64)
+        vals = np.arange(keys.size, dtype=np.int32)
+        sk, sv = R.radix_sort_pairs(rt, cla.to_device(rt.queue, keys), cla.to_device(rt.queue, vals), bits, cfg)
+        order = np.argsort(keys, kind="stable")
+        np.testing.assert_array_equal(sv.get(), vals[order])
+        np.testing.assert_array_equal(sk.get(), keys[order])
+
+
 def test_sort_values_are_arbitrary_payload(rt):
     rng = np.random.default_rng(9)
     n = 7777

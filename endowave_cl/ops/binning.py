@@ -15,7 +15,7 @@ import pyopencl.array as cla
 
 from endowave_cl.layout import tile_grid  # noqa: F401  (part of this module's API)
 from endowave_cl.ops.scan import exclusive_scan_with_total
-from endowave_cl.ops.sort import SortConfig, radix_sort_pairs
+from endowave_cl.ops.sort import SortConfig, config_for_bits, radix_sort_pairs
 
 DEPTH_BITS = 32  # low key bits: the float32 depth's bit pattern
 LOCAL = 64       # work-group size of the one-item-per-element kernels here
@@ -56,36 +56,56 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     rect [N, 4] int32 (x0, y0, x1, y1) exclusive, clamped to the tiles_x x tiles_y grid;
     depth [N] float32; radius [N] int32; tiles_touched [N] int32 (= the rect's area).
     """
-    return _bin(rt, rect, depth, radius, tiles_touched, tiles_x, compact=False)[0]
+    return _bin(rt, rect, depth, radius, tiles_touched, tiles_x)
 
 
-def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int, compact: bool):
-    """(BinEntries, depth_bits): compact=False gives the full keys (depth_bits 32); compact=True keys
-    tile id << depth_bits | (depth bits - least depth bits), depth_bits just enough for the range of
-    the visible Gaussians' depth patterns: the same order as the full keys in fewer bits."""
+def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int):
+    """BinEntries with the full keys (bin_gaussians)."""
     n = int(depth.size)
-    q = rt.queue
     if n == 0:
-        return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0,
-                          cla.zeros(q, 1, np.int32)), DEPTH_BITS
+        return _no_entries(rt)
+    counts, dbounds = _counts(rt, radius, tiles_touched, depth)
+    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
+    m = int(offsets[n:n + 1].get()[0])
+    keys = rt.empty(m, np.uint64)    # [M]
+    values = rt.empty(m, np.int32)   # [M]
+    if m > 0:
+        _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
+                np.int32(n), np.int32(tiles_x), keys.data, values.data)
+    return BinEntries(keys, values, m, offsets)
+
+
+def _no_entries(rt) -> BinEntries:
+    q = rt.queue
+    return BinEntries(cla.empty(q, 0, np.uint64), cla.empty(q, 0, np.int32), 0, cla.zeros(q, 1, np.int32))
+
+
+def _counts(rt, radius, tiles_touched, depth):
+    """(counts [N] int32, dbounds [2] uint32): each Gaussian's entries (bin_counts) and the least
+    and greatest depth bit pattern of those that have any ((UINT_MAX, 0) when none has)."""
+    n = int(depth.size)
     counts = rt.empty(n, np.int32)  # [N]
     dbounds = rt.empty(2, np.uint32)
     dbounds.fill(np.uint32(0xFFFFFFFF))
     dbounds[1:2].fill(np.uint32(0))
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, depth.data, np.int32(n), counts.data,
             dbounds.data)
-    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
-    m = int(offsets[n:n + 1].get()[0])
-    dmin, dshift = 0, DEPTH_BITS
-    if compact and m > 0:
-        lo, hi = (int(v) for v in dbounds.get())
-        dmin, dshift = lo, (hi - lo).bit_length()
-    keys = rt.empty(m, np.uint64)    # [M]
-    values = rt.empty(m, np.int32)   # [M]
-    if m > 0:
-        _launch(rt, "bin_gaussians", n, rect.data, depth.data, radius.data, offsets.data,
-                np.int32(n), np.int32(tiles_x), np.uint32(dmin), np.int32(dshift), keys.data, values.data)
-    return BinEntries(keys, values, m, offsets), dshift
+    return counts, dbounds
+
+
+def depth_order(rt, depth: cla.Array, counts: cla.Array, dbounds, sort_config: Optional[SortConfig] = None):
+    """(order [N] int32, depth_bits): the Gaussian ids sorted by depth (the float32 bit pattern as a
+    uint, as the keys of bin_gaussians), equal depths in id order; the Gaussians without entries
+    (counts 0) anywhere.  The sort keys only the depth_bits that the patterns of the Gaussians with
+    entries span (dbounds, from bin_counts, as host ints or the device array)."""
+    n = int(depth.size)
+    lo, hi = (int(v) for v in (dbounds.get() if isinstance(dbounds, cla.Array) else dbounds))
+    dmin, dbits = (lo, (hi - lo).bit_length()) if lo <= hi else (0, 0)
+    keys = rt.empty(n, np.uint64)  # [N]
+    ids = rt.empty(n, np.int32)    # [N]
+    _launch(rt, "depth_keys", n, depth.data, counts.data, np.int32(n), np.uint32(dmin), keys.data, ids.data)
+    _, order = radix_sort_pairs(rt, keys, ids, dbits, sort_config)
+    return order, dbits
 
 
 def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int, shift: int = DEPTH_BITS) -> cla.Array:
@@ -103,18 +123,40 @@ def tile_ranges(rt, sorted_keys: cla.Array, n_tiles: int, shift: int = DEPTH_BIT
 def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles_touched: cla.Array,
                  width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:
     """Binned(sorted_values [M] int32, tile_ranges [n_tiles, 2] int32, M, offsets [N + 1] int32) for
-    a width x height image: scan -> bin -> radix sort of the needed key bits -> ranges.
+    a width x height image.
 
-    The keys are the compact ones (see _bin): the tile id above only as many depth bits as the
-    visible depths' bit patterns span (22 for depths 3.5-4.5), so the sort runs
-    ceil((tile bits + depth bits) / radix bits) passes instead of ceil(key_bits / radix bits),
-    with the same order: sorted_values equal those of sorting the full keys."""
+    The order is that of sorting bin_gaussians' (tile << 32 | depth bits) keys stably, reached in
+    two stages with fewer radix passes over the M entries: the N Gaussians are sorted by depth
+    (depth_order: only the depth bits the visible Gaussians span), their entries are emitted in that
+    order with the tile id alone as the key (cl/bin.cl bin_in_order), and a stable sort of the tile
+    bits (one pass on CPU devices up to 2^11 tiles: ops.sort.config_for_bits) leaves each tile's
+    entries in depth order, equal depths in id order.  sort_config, when given, runs both sorts.
+    offsets are the
+    binning offsets in id order (bin_gaussians'), which the deterministic adjoint files its
+    per-entry terms by; the emission order does not enter them."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    (keys, values, m, offsets), dshift = _bin(rt, rect, depth, radius, tiles_touched, tiles_x, compact=True)
-    bits = key_bits(n_tiles) - DEPTH_BITS + dshift
-    sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, bits, sort_config)
-    return Binned(sorted_values, tile_ranges(rt, sorted_keys, n_tiles, dshift), m, offsets)
+    n = int(depth.size)
+    if n == 0:
+        keys, values, m, offsets = _no_entries(rt)
+        return Binned(values, tile_ranges(rt, keys, n_tiles, 0), 0, offsets)
+    counts, dbounds = _counts(rt, radius, tiles_touched, depth)
+    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1] in id order
+    m = int(offsets[n:n + 1].get()[0])
+    keys = rt.empty(m, np.uint64)    # [M]
+    values = rt.empty(m, np.int32)   # [M]
+    if m == 0:
+        return Binned(values, tile_ranges(rt, keys, n_tiles, 0), 0, offsets)
+    order, _ = depth_order(rt, depth, counts, dbounds, sort_config)      # [N]
+    counts_r = rt.empty(n, np.int32)                                     # [N] in depth order
+    _launch(rt, "counts_in_order", n, order.data, counts.data, np.int32(n), counts_r.data)
+    offsets_r = exclusive_scan_with_total(rt, counts_r)                  # [N + 1]
+    _launch(rt, "bin_in_order", n, rect.data, order.data, offsets_r.data, np.int32(n), np.int32(tiles_x),
+            keys.data, values.data)
+    tile_bits = key_bits(n_tiles) - DEPTH_BITS
+    sorted_keys, sorted_values = radix_sort_pairs(rt, keys, values, tile_bits,
+                                                  sort_config or config_for_bits(rt, m, tile_bits))
+    return Binned(sorted_values, tile_ranges(rt, sorted_keys, n_tiles, 0), m, offsets)
 
 
 def bin_projected(rt, proj, width: int, height: int, sort_config: Optional[SortConfig] = None) -> Binned:

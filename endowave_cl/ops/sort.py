@@ -55,6 +55,10 @@ CPU_CONFIG = SortConfig(radix_bits=8, wg=1, items_min=16, items_max=1 << 14, gro
 GPU_CONFIG = SortConfig(radix_bits=4, wg=128, items_min=8, items_max=32, groups_per_cu=64)
 GPU_SMALL_CONFIG = SortConfig(radix_bits=6, wg=64, items_min=8, items_max=512, groups_per_cu=16)
 GPU_SMALL_MAX = 1 << 21
+# CPU: keys of 9 to CPU_ONE_PASS_BITS bits (bin_and_sort's tile ids: 9 bits at 320x256, 11 at
+# 640x512) sort in one pass of that many bits, which costs less than two passes of 8 bits
+# (docs/PERFORMANCE.md, "Seventeenth pass").  Local memory: 2^11 ints with wg = 1.
+CPU_ONE_PASS_BITS = 11
 
 
 def _fit_local_memory(cfg: SortConfig, caps) -> SortConfig:
@@ -75,6 +79,15 @@ def default_config(rt, n: Optional[int] = None) -> SortConfig:
         return CPU_CONFIG
     small = n is not None and n < GPU_SMALL_MAX
     return _fit_local_memory(GPU_SMALL_CONFIG if small else GPU_CONFIG, caps)
+
+
+def config_for_bits(rt, n: int, num_bits: int) -> SortConfig:
+    """default_config(rt, n), except that on CPU devices keys of up to CPU_ONE_PASS_BITS bits take
+    one pass of num_bits-bit digits instead of two of CPU_CONFIG's."""
+    cfg = default_config(rt, n)
+    if cfg is CPU_CONFIG and cfg.radix_bits < num_bits <= CPU_ONE_PASS_BITS:
+        return replace(cfg, radix_bits=int(num_bits))
+    return cfg
 
 
 def sort_passes(num_bits: int, radix_bits: int) -> int:
