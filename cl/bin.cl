@@ -44,9 +44,25 @@ void bin_counts(__global const int *radius,        /* [N] */
     }
 }
 
-/* offsets [N + 1]: exclusive scan of counts followed by the total M.  Gaussian i owns
- * entries [offsets[i], offsets[i + 1]); it writes at most that many (a rect larger than
- * tiles_touched is cut short rather than overrunning its neighbour). */
+/* The entries of Gaussian g at k .. end - 1, the tiles of its rect row-major: key (tile << shift) |
+ * low, value g.  It writes at most end - k of them (a rect larger than its count is cut short
+ * rather than overrunning the next Gaussian's entries). */
+inline void emit_entries(__global const int *rect, const int g, int k, const int end, const int tiles_x,
+                         const int shift, const ulong low, __global ulong *keys, __global int *values) {
+    const int x0 = rect[4 * g + 0], y0 = rect[4 * g + 1];
+    const int x1 = rect[4 * g + 2], y1 = rect[4 * g + 3];
+    for (int ty = y0; ty < y1; ++ty) {
+        for (int tx = x0; tx < x1; ++tx) {
+            if (k >= end) return;
+            keys[k] = ((ulong)(ty * tiles_x + tx) << shift) | low;
+            values[k] = g;
+            ++k;
+        }
+    }
+}
+
+/* offsets [N + 1]: exclusive scan of counts followed by the total M.  Gaussian i owns entries
+ * [offsets[i], offsets[i + 1]), key (tile << 32) | as_uint(depth). */
 __kernel void bin_gaussians(__global const int *rect,     /* [N, 4] x0, y0, x1, y1 (exclusive) */
                             __global const float *depth,  /* [N] */
                             __global const int *radius,   /* [N] */
@@ -58,20 +74,7 @@ __kernel void bin_gaussians(__global const int *rect,     /* [N, 4] x0, y0, x1, 
     const int i = get_global_id(0);
     if (i >= n) return;
     if (radius[i] <= 0) return;
-    int k = offsets[i];
-    const int end = offsets[i + 1];
-    const ulong dbits = (ulong)as_uint(depth[i]);
-    const int x0 = rect[4 * i + 0], y0 = rect[4 * i + 1];
-    const int x1 = rect[4 * i + 2], y1 = rect[4 * i + 3];
-    for (int ty = y0; ty < y1; ++ty) {
-        for (int tx = x0; tx < x1; ++tx) {
-            if (k >= end) return;
-            const ulong tile = (ulong)(ty * tiles_x + tx);
-            keys[k] = (tile << 32) | dbits;
-            values[k] = i;
-            ++k;
-        }
-    }
+    emit_entries(rect, i, offsets[i], offsets[i + 1], tiles_x, 32, (ulong)as_uint(depth[i]), keys, values);
 }
 
 /* ranges [n_tiles, 2] must be zero on entry.  For sorted entry k of tile t = key >> shift: if k
@@ -138,18 +141,6 @@ __kernel void bin_in_order(__global const int *rect,       /* [N, 4] x0, y0, x1,
      * scattered over the array, which the sort's passes have pushed out of the nearer caches */
     if (r + RECT_AHEAD < n) PREFETCH(rect + 4 * order[r + RECT_AHEAD]);
 #endif
-    int k = offsets_r[r];
-    const int end = offsets_r[r + 1];
-    if (k >= end) return;
-    const int g = order[r];
-    const int x0 = rect[4 * g + 0], y0 = rect[4 * g + 1];
-    const int x1 = rect[4 * g + 2], y1 = rect[4 * g + 3];
-    for (int ty = y0; ty < y1; ++ty) {
-        for (int tx = x0; tx < x1; ++tx) {
-            if (k >= end) return;
-            keys[k] = (ulong)(ty * tiles_x + tx);
-            values[k] = g;
-            ++k;
-        }
-    }
+    const int k = offsets_r[r], end = offsets_r[r + 1];
+    if (k < end) emit_entries(rect, order[r], k, end, tiles_x, 0, 0ul, keys, values);
 }
