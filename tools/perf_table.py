@@ -91,7 +91,8 @@ def estimates(name, s):
     N, V, M, P, C, K = s["N"], s["visible"], s["M"], s["pixels"], s["C"], s["sh_floats"]
     NV = 6 + C
     rec = 16 * (3 + (C + 3) // 4)
-    passes = s.get("passes", 0)
+    # bin_and_sort's two sorts: depth passes over the N Gaussians, tile passes over the M entries
+    sorted_elems = s.get("depth_passes", 0) * N + s.get("tile_passes", 0) * M
     table = {
         "project4d": (N * (4 * 16 + 4 + 12) + V * 4 * K + N * (8 + 12 + 4 + 4 + 4 + 4 * C + 16 + 4) + V * 36,
                       V * PROJECT_FLOPS),
@@ -99,9 +100,11 @@ def estimates(name, s):
                           V * PROJECT_BWD_FLOPS),
         "bin_counts": (N * 16, N),
         "scan_blocks": (N * 8, N), "scan_add_offsets": (N * 8, N),
-        "bin_gaussians": (N * 32 + M * 12, M * 4),
-        "radix_histogram": (passes * M * 8, passes * M * 3),
-        "radix_scatter": (passes * M * 24, passes * M * 4),
+        "depth_keys": (N * (4 + 4 + 8 + 4), N),
+        "counts_in_order": (N * 12, 0),
+        "bin_in_order": (N * (4 + 8 + 16) + M * 12, M * 4),
+        "radix_histogram": (sorted_elems * 8, sorted_elems * 3),
+        "radix_scatter": (sorted_elems * 24, sorted_elems * 4),
         "tile_ranges": (M * 8 + s["tiles"] * 8, M * 2),
         "rasterize_vec_prep": (N * (8 + 12 + 4 + 4 * C) + N * rec, N * 20),
         "rasterize_vec": (M * (4 + rec) + P * 4 * (C + 3), (s["lanes_fwd"] or 0) * FWD_LANE_FLOPS),
@@ -133,6 +136,8 @@ def main(argv=None):
     from kernel_events import kernel_ms, profile_launches
     from endowave_cl.camera import Camera
     from endowave_cl.gaussians import upload
+    from endowave_cl.ops.binning import DEPTH_BITS, key_bits
+    from endowave_cl.ops.sort import config_for_bits, sort_passes
     from endowave_cl.render import render, render_backward
     from endowave_cl.runtime import Runtime, choose_device
 
@@ -170,8 +175,11 @@ def main(argv=None):
     C = int(out.proj.features.shape[1])
     sizes = {"N": args.n, "visible": int((out.proj.radius.get() > 0).sum()), "M": out.n_isect,
              "pixels": args.width * args.height, "C": C, "tiles": int(out.tile_ranges.shape[0]),
-             "sh_floats": int(np.prod(params["sh"].shape[1:])), "passes": launches.get("radix_scatter", 0),
+             "sh_floats": int(np.prod(params["sh"].shape[1:])),
              "det": (not rt.caps.simt) if hasattr(rt, "caps") else not rt.is_gpu}
+    tile_bits = key_bits(sizes["tiles"]) - DEPTH_BITS
+    sizes["tile_passes"] = sort_passes(tile_bits, config_for_bits(rt, sizes["M"], tile_bits).radix_bits)
+    sizes["depth_passes"] = launches.get("radix_scatter", 0) - sizes["tile_passes"]
     sizes["lanes_fwd"], sizes["lanes_bwd"] = lane_evaluations(out.raster, out.binned, out.proj,
                                                               args.width, args.height, C)
     rows = []
@@ -186,7 +194,7 @@ def main(argv=None):
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
     head = (f"device: {rt.describe()}\nload average (1, 5, 15 min) after the runs: {load}\n"
             f"sizes: N={sizes['N']} ({sizes['visible']} visible), {args.width}x{args.height}, C={C}, "
-            f"M={sizes['M']} tile pairs, {sizes['passes']} sort passes; kernel times: median of {args.runs} "
+            f"M={sizes['M']} tile pairs, sort passes: {sizes['depth_passes']} by depth over the Gaussians, {sizes['tile_passes']} by tile over the pairs; kernel times: median of {args.runs} "
             f"runs (OpenCL event profiling) after {args.warmup}\n"
             f"peaks (tools/peak_probe.py, load {peaks.get('load_before', '?')}): copy {peaks['copy_gbs']:.1f} GB/s, "
             f"triad {peaks['triad_gbs']:.1f} GB/s, FMA {fl_peak:.1f} GFLOP/s\n"
