@@ -64,9 +64,7 @@ def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int):
     n = int(depth.size)
     if n == 0:
         return _no_entries(rt)
-    counts, dbounds = _counts(rt, radius, tiles_touched, depth)
-    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
-    m = int(offsets[n:n + 1].get()[0])
+    counts, dbounds, offsets, m = _counted(rt, radius, tiles_touched, depth)
     keys = rt.empty(m, np.uint64)    # [M]
     values = rt.empty(m, np.int32)   # [M]
     if m > 0:
@@ -91,6 +89,15 @@ def _counts(rt, radius, tiles_touched, depth):
     _launch(rt, "bin_counts", n, radius.data, tiles_touched.data, depth.data, np.int32(n), counts.data,
             dbounds.data)
     return counts, dbounds
+
+
+def _counted(rt, radius, tiles_touched, depth):
+    """(counts [N], dbounds [2], offsets [N + 1], M): _counts, the binning offsets in id order (the
+    exclusive scan of counts, then the total) and M read back."""
+    n = int(depth.size)
+    counts, dbounds = _counts(rt, radius, tiles_touched, depth)
+    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1]
+    return counts, dbounds, offsets, int(offsets[n:n + 1].get()[0])
 
 
 def depth_order(rt, depth: cla.Array, counts: cla.Array, dbounds, sort_config: Optional[SortConfig] = None):
@@ -131,18 +138,15 @@ def bin_and_sort(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array, tiles
     order with the tile id alone as the key (cl/bin.cl bin_in_order), and a stable sort of the tile
     bits (one pass on CPU devices up to 2^11 tiles: ops.sort.config_for_bits) leaves each tile's
     entries in depth order, equal depths in id order.  sort_config, when given, runs both sorts.
-    offsets are the
-    binning offsets in id order (bin_gaussians'), which the deterministic adjoint files its
-    per-entry terms by; the emission order does not enter them."""
+    offsets are the binning offsets in id order (bin_gaussians'), which the deterministic adjoint
+    files its per-entry terms by; the emission order does not enter them."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     n = int(depth.size)
     if n == 0:
         keys, values, m, offsets = _no_entries(rt)
         return Binned(values, tile_ranges(rt, keys, n_tiles, 0), 0, offsets)
-    counts, dbounds = _counts(rt, radius, tiles_touched, depth)
-    offsets = exclusive_scan_with_total(rt, counts)  # [N + 1] in id order
-    m = int(offsets[n:n + 1].get()[0])
+    counts, dbounds, offsets, m = _counted(rt, radius, tiles_touched, depth)
     keys = rt.empty(m, np.uint64)    # [M]
     values = rt.empty(m, np.int32)   # [M]
     if m == 0:
