@@ -194,7 +194,8 @@ def main(argv=None):
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
     head = (f"device: {rt.describe()}\nload average (1, 5, 15 min) after the runs: {load}\n"
             f"sizes: N={sizes['N']} ({sizes['visible']} visible), {args.width}x{args.height}, C={C}, "
-            f"M={sizes['M']} tile pairs, sort passes: {sizes['depth_passes']} by depth over the Gaussians, {sizes['tile_passes']} by tile over the pairs; kernel times: median of {args.runs} "
+            f"M={sizes['M']} tile pairs, sort passes: {sizes['depth_passes']} by depth over the Gaussians, "
+            f"{sizes['tile_passes']} by tile over the pairs; kernel times: median of {args.runs} "
             f"runs (OpenCL event profiling) after {args.warmup}\n"
             f"peaks (tools/peak_probe.py, load {peaks.get('load_before', '?')}): copy {peaks['copy_gbs']:.1f} GB/s, "
             f"triad {peaks['triad_gbs']:.1f} GB/s, FMA {fl_peak:.1f} GFLOP/s\n"

@@ -56,11 +56,6 @@ def bin_gaussians(rt, rect: cla.Array, depth: cla.Array, radius: cla.Array,
     rect [N, 4] int32 (x0, y0, x1, y1) exclusive, clamped to the tiles_x x tiles_y grid;
     depth [N] float32; radius [N] int32; tiles_touched [N] int32 (= the rect's area).
     """
-    return _bin(rt, rect, depth, radius, tiles_touched, tiles_x)
-
-
-def _bin(rt, rect, depth, radius, tiles_touched, tiles_x: int):
-    """BinEntries with the full keys (bin_gaussians)."""
     n = int(depth.size)
     if n == 0:
         return _no_entries(rt)
@@ -104,9 +99,9 @@ def depth_order(rt, depth: cla.Array, counts: cla.Array, dbounds, sort_config: O
     """(order [N] int32, depth_bits): the Gaussian ids sorted by depth (the float32 bit pattern as a
     uint, as the keys of bin_gaussians), equal depths in id order; the Gaussians without entries
     (counts 0) anywhere.  The sort keys only the depth_bits that the patterns of the Gaussians with
-    entries span (dbounds, from bin_counts, as host ints or the device array)."""
+    entries span (dbounds [2], bin_counts' device array, read back here)."""
     n = int(depth.size)
-    lo, hi = (int(v) for v in (dbounds.get() if isinstance(dbounds, cla.Array) else dbounds))
+    lo, hi = (int(v) for v in dbounds.get())
     dmin, dbits = (lo, (hi - lo).bit_length()) if lo <= hi else (0, 0)
     keys = rt.empty(n, np.uint64)  # [N]
     ids = rt.empty(n, np.int32)    # [N]
