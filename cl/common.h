@@ -34,6 +34,9 @@ inline void store4(__global float *p, float4 v) {
  *   PREFETCH(p)  a hint to bring the cache line at p closer (prefetcht0 on x86): gathers whose
  *                addresses are known ahead (prefetch_floats: every line of a row; the kernels
  *                that gather scattered rows ask for the row ROWS_AHEAD work-items ahead);
+ *   PREFETCH_L2(p) the same hint into the outer caches only (prefetcht1 on x86): blocks of many
+ *                lines wanted one work-item later (prefetch_floats_l2), which would evict the
+ *                current work-item's lines from L1;
  *   sqrt1, sqrt4, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction);
@@ -49,6 +52,11 @@ inline void prefetch_floats(__global const float *p, const int n) {
     for (int c = 0; c < n; c += 16) PREFETCH(p + c);
     PREFETCH(p + n - 1);
 }
+#define PREFETCH_L2(p) __builtin_prefetch(p, 0, 2)
+inline void prefetch_floats_l2(__global const float *p, const int n) {
+    for (int c = 0; c < n; c += 16) PREFETCH_L2(p + c);
+    PREFETCH_L2(p + n - 1);
+}
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
 inline int clz1(uint x) { return __builtin_clz(x); }   /* x != 0 */
 inline float4 sqrt4(float4 x) {
@@ -62,6 +70,7 @@ inline float8 sqrt8(float8 x) {
 #else
 #define HAVE_PREFETCH 0
 #define PREFETCH(p) ((void)0)
+#define PREFETCH_L2(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }
 inline int clz1(uint x) { return (int)clz(x); }
 inline float4 sqrt4(float4 x) { return sqrt(x); }

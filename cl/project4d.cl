@@ -26,6 +26,12 @@ __kernel void project4d(
     __global float *color_inner)     /* [N, NT+1, 3] sum_k c[n, k, rgb] Y_k, for the adjoint */
 {
     P4_INDEX_OR_RETURN(ix, n);
+#if defined(P4_VW) && HAVE_PREFETCH
+    /* The SH rows (most of the bytes read) of the next work-item's Gaussians, into L2 while this
+     * one computes: without it the read of each work-item's rows waits on memory after its
+     * geometry (docs/PERFORMANCE.md, eighteenth pass). */
+    if (ix.base + 2 * VW <= n) prefetch_floats_l2(sh + SH_NCOEF * (ix.base + VW), VW * SH_NCOEF);
+#endif
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
     p4_forward(&cam, means, scales, quat_l, quat_r, ix, t, tiles_x, tiles_y, &s);
