@@ -40,7 +40,7 @@ def stage_of(name: str) -> str:
         return "project_bwd"
     if name.startswith("project4d"):
         return "project"
-    if name.startswith(("bin_", "scan_", "radix_", "tile_ranges")):
+    if name.startswith(("bin_", "scan_", "radix_", "tile_ranges", "depth_keys", "counts_in_order")):
         return "bin_sort"
     if "_bwd" in name:
         return "rasterize_bwd"
