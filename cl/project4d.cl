@@ -5,6 +5,22 @@
  * -DP4_NO_TIGHT_RECT keeps the 3-sigma rect (tests/test_tight_rect.py compares the two). */
 #include "project4d_common.h"
 
+#if defined(P4_VW) && HAVE_PREFETCH
+/* Part `part` of P4_PF_PARTS of the next work-item's SH rows (VW rows of SH_NCOEF floats: most of
+ * the bytes this kernel reads), asked for into L2 while this work-item computes its geometry: the
+ * parts are spread over the kernel so that the read overlaps the arithmetic without too many
+ * requests waiting at once (docs/PERFORMANCE.md, eighteenth pass). */
+#define P4_PF_PARTS 3
+P4_FN void p4_prefetch_next_sh(__global const float *sh, P4Idx ix, int n, int part) {
+    const int total = VW * SH_NCOEF, len = total / P4_PF_PARTS, start = part * len;
+    if (ix.base + 2 * VW <= n)
+        prefetch_floats_l2(sh + SH_NCOEF * (ix.base + VW) + start, part == P4_PF_PARTS - 1 ? total - start : len);
+}
+#define P4_PREFETCH_NEXT_SH(part) p4_prefetch_next_sh(sh, ix, n, part)
+#else
+#define P4_PREFETCH_NEXT_SH(part) ((void)0)
+#endif
+
 __kernel void project4d(
     const int n,
     __global const float *means,     /* [N, 4] */
@@ -26,15 +42,11 @@ __kernel void project4d(
     __global float *color_inner)     /* [N, NT+1, 3] sum_k c[n, k, rgb] Y_k, for the adjoint */
 {
     P4_INDEX_OR_RETURN(ix, n);
-#if defined(P4_VW) && HAVE_PREFETCH
-    /* The SH rows (most of the bytes read) of the next work-item's Gaussians, into L2 while this
-     * one computes: without it the read of each work-item's rows waits on memory after its
-     * geometry (docs/PERFORMANCE.md, eighteenth pass). */
-    if (ix.base + 2 * VW <= n) prefetch_floats_l2(sh + SH_NCOEF * (ix.base + VW), VW * SH_NCOEF);
-#endif
+    P4_PREFETCH_NEXT_SH(0);
     P4Cam cam = p4_load_camera(cam_buf);
     P4State s;
     p4_forward(&cam, means, scales, quat_l, quat_r, ix, t, tiles_x, tiles_y, &s);
+    P4_PREFETCH_NEXT_SH(1);
     const p4i ok = s.valid;
     if (!P4_ANY(ok)) {
         const p4f zf = 0.0f;
@@ -64,6 +76,7 @@ __kernel void project4d(
     for (int k = 0; k < 4; ++k) p4_sti(rect, 4, k, ix, P4_SELI(ok, s.rect[k]));
     p4_sti(tiles_touched, 1, 0, ix, P4_SELI(ok, (s.rect[2] - s.rect[0]) * (s.rect[3] - s.rect[1])));
 
+    P4_PREFETCH_NEXT_SH(2);
     /* TEASH colour: max(0, 0.5 + sum_{n,k} c[n,k] Y_k(d) cos(omega_n t + phi_n)) */
     p4f d[3], Y[SH_K], cs[NT + 1], sn[NT + 1];
     p4_view_dir(&cam, &s, d);
