@@ -5,7 +5,8 @@
 Scene: Gaussians.random(n) (default SH degree 3, NT = 2, C = 6 with flow) seen by a camera at the
 origin looking down +z.  Prints the median (and min) of --runs timed runs after two warm-up runs,
 with the device and the sizes.  Each timed run includes the kernel launch and a queue.finish(),
-not the upload of the parameters.
+not the upload of the parameters; beside it, the kernel's own time (OpenCL event profiling,
+tools/kernel_events.py), which moves less with the host's load.
 """
 from __future__ import annotations
 
@@ -36,6 +37,9 @@ def main(argv=None):
     from endowave_cl.runtime import get_runtime
 
     rt = get_runtime(args.device)
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from kernel_events import kernel_ms, profile_launches
+    events = profile_launches(rt)   # before the first buffer: the pool is bound to the queue
     g = Gaussians.random(args.n, seed=0)
     cam = Camera(0.8 * args.width, 0.8 * args.width, args.width / 2, args.height / 2, args.width, args.height)
     params = upload(rt, g)
@@ -58,21 +62,23 @@ def main(argv=None):
     def timed(fn):
         for _ in range(2):
             fn()
-        ts = []
+        ts, ks = [], []
         for _ in range(args.runs):
+            events.clear()
             t0 = time.perf_counter()
             fn()
             ts.append((time.perf_counter() - t0) * 1e3)
-        return statistics.median(ts), min(ts)
+            ks.append(sum(kernel_ms(events).values()))
+        return statistics.median(ts), min(ts), statistics.median(ks)
 
-    f_med, f_min = timed(fwd)
-    b_med, b_min = timed(bwd)
+    f_med, f_min, f_k = timed(fwd)
+    b_med, b_min, b_k = timed(bwd)
     visible = int((proj.radius.get() > 0).sum())
     print(f"device: {rt.describe()}")
     print(f"sizes: N = {args.n} Gaussians ({visible} visible at t = {t}), SH degree {g.sh_degree}, "
           f"NT = {g.temporal_freqs}, C = 6, image {args.width} x {args.height}")
-    print(f"project4d      forward : median {f_med:8.3f} ms   (min {f_min:.3f}, {args.runs} runs)")
-    print(f"project4d_bwd  adjoint : median {b_med:8.3f} ms   (min {b_min:.3f}, {args.runs} runs)")
+    print(f"project4d      forward : median {f_med:8.3f} ms   (min {f_min:.3f}, {args.runs} runs); kernel {f_k:.3f} ms")
+    print(f"project4d_bwd  adjoint : median {b_med:8.3f} ms   (min {b_min:.3f}, {args.runs} runs); kernel {b_k:.3f} ms")
 
 
 if __name__ == "__main__":
