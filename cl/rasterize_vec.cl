@@ -15,13 +15,13 @@
  * (vector ?:): a lane that skips or is done adds nothing; the work-item leaves the batch once all its
  * lanes are done, and the group stops loading batches once every work-item is done.
  *
- * Culling (exact, as in rasterize.cl): per batch, each culling block (BROWS work-item blocks one
- * above the other) gets the ordered list of the batch's Gaussians whose cull box reaches one of its
- * pixel centres; a work-item walks its list, skips entries whose box misses its block's rows, and
- * masks lanes whose power is below the skip threshold.  Every work-item reaches every barrier.
+ * Culling (exact, as in rasterize.cl): per batch, each work-item tests the staged cull boxes against
+ * its block 8 at a time (box_hits8) into a bit mask of the batch's entries, then walks the set bits
+ * in order and masks lanes whose power is below the skip threshold.  Every work-item reaches every
+ * barrier.
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>,
- * -DBW (block width, divides VW), -DBROWS (work-item block rows per culling list).
+ * -DBW (block width, divides VW).
  */
 #include "common.h"
 #include "vexp.h"
@@ -36,17 +36,47 @@
  *   [3 ..] features[0 .. C-1], zero-padded to a multiple of 4. */
 #define REC4 (3 + (C + 3) / 4)
 
-inline void stage_gaussian(__global const float4 *rec, int g, int j, __local float2 *l_mean,
+/* Gaussian g's record as entry j of a batch of nb staged in local memory, the cull box by
+ * coordinate (l_box [4, nb]: xmin, xmax, ymin, ymax) so that box_hits8 tests 8 entries at once. */
+inline void stage_gaussian(__global const float4 *rec, int g, int j, int nb, __local float2 *l_mean,
                            __local float4 *l_cop, __local float *l_feat, __local float *l_thr,
-                           __local float4 *l_box) {
+                           __local float *l_box) {
     __global const float4 *r = rec + g * REC4;
     l_cop[j] = r[0];
-    l_box[j] = r[1];
+    const float4 bb = r[1];
+    l_box[j] = bb.x; l_box[nb + j] = bb.y; l_box[2 * nb + j] = bb.z; l_box[3 * nb + j] = bb.w;
     const float4 m = r[2];
     l_mean[j] = m.xy;
     l_thr[j] = m.z;
     __global const float *f = (__global const float *)(r + 3);
     for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
+}
+
+/* entry j of l_box [4, nb]: a box that reaches no block (entries past a batch's end, up to a
+ * multiple of 8, which box_hits8 reads) */
+inline void stage_no_box(int j, int nb, __local float *l_box) {
+    l_box[j] = MAXFLOAT; l_box[nb + j] = -MAXFLOAT; l_box[2 * nb + j] = MAXFLOAT; l_box[3 * nb + j] = -MAXFLOAT;
+}
+
+/* 8 consecutive floats of local memory (element loads, merged into one vector load; PoCL calls
+ * vload8 out of line) */
+inline float8 lload8(__local const float *p) {
+    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+}
+
+/* bit l set where lane l of the mask t (-1 / 0 per lane) is set */
+inline uint mask_bits8(int8 t) {
+    const int8 b = t & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
+    const int4 c = b.lo | b.hi;
+    const int2 d = c.lo | c.hi;
+    return (uint)(d.x | d.y);
+}
+
+/* bit i set where the cull box of entry j0 + i of l_box [4, nb] reaches the pixel centres
+ * [px0, px1] x [py0, py1] (i < 8) */
+inline uint box_hits8(__local const float *l_box, int nb, int j0, float px0, float px1, float py0, float py1) {
+    return mask_bits8((lload8(l_box + j0) <= px1) & (lload8(l_box + nb + j0) >= px0) &
+                      (lload8(l_box + 2 * nb + j0) <= py1) & (lload8(l_box + 3 * nb + j0) >= py0));
 }
 
 #ifndef RASTERIZE_VEC_HELPERS_ONLY
@@ -82,14 +112,10 @@ __kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
 #define BX (TILE / BW)                /* work-items per row of blocks */
 #define BY (TILE / BH)                /* rows of blocks */
 #define N_WI (BX * BY)                /* work-items per group */
-#define FWD_BATCH TILE_PIXELS         /* Gaussians per local-memory batch (indices fit a uchar) */
-#ifndef BROWS
-#define BROWS 4                       /* rows of blocks that share a culling list */
+#define FWD_BATCH TILE_PIXELS         /* Gaussians per local-memory batch */
+#if FWD_BATCH % 32 != 0
+#error "a work-item's hit mask is FWD_BATCH / 32 words"
 #endif
-#if (BY % BROWS) != 0
-#error "BROWS must divide TILE / BH"
-#endif
-#define N_BLK (BX * (BY / BROWS))     /* culling lists per tile (<= N_WI) */
 
 /* Lane geometry: pixel offsets of the lanes inside the block. */
 inline intV lane_dx(void) {
@@ -108,17 +134,18 @@ __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                    RASTER_LIST_ARGS, RASTER_FWD_OUT_ARGS)
 {
-    RASTER_BATCH_LOCALS(FWD_BATCH);
-    __local uchar l_list[N_BLK * FWD_BATCH];     /* per culling-block lists of batch indices */
-    __local int l_len[N_BLK];
+    __local float2 l_mean[FWD_BATCH];
+    __local float4 l_cop[FWD_BATCH];             /* (a, b, c, opac) */
+    __local float l_feat[FWD_BATCH * C];
+    __local float l_thr[FWD_BATCH];              /* power threshold of the early skip */
+    __local float l_box[4 * FWD_BATCH];          /* cull boxes by coordinate (stage_gaussian) */
     __local int l_done[2];                       /* done-work-item counters, used alternately */
 
     const TileWork w = tile_work(BW, BH, tiles_x);
-    const int lx = w.lx, ly = w.ly, lid = w.lid, tx = w.tx, ty = w.ty;
+    const int lid = w.lid;
     const int ix0 = w.x0, iy0 = w.y0;                                  /* first pixel of the block */
     const float px0 = w.px0, px1 = px0 + (float)(BW - 1);              /* block's pixel centres */
     const float py0 = w.py0, py1 = py0 + (float)(BH - 1);
-    const int my_blk = (ly / BROWS) * BX + lx;
 
     const intV ldx = lane_dx(), ldy = lane_dy();
     const floatV px = (floatV)(px0) + convert_floatV(ldx);
@@ -155,26 +182,14 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
             PREFETCH(r + REC4 - 1);
         }
 #endif
-        for (int j = lid; j < count; j += N_WI)
-            stage_gaussian(rec, sorted_values[base + j], j, l_mean, l_cop, l_feat, l_thr, l_box);
-        barrier(CLK_LOCAL_MEM_FENCE);
-        if (lid < N_BLK) {   /* list of the batch entries whose cull box reaches culling block lid */
-            const float bx0 = (float)(tx * TILE + (lid % BX) * BW) + 0.5f, bx1 = bx0 + (float)(BW - 1);
-            const float by0 = (float)(ty * TILE + (lid / BX) * BROWS * BH) + 0.5f;
-            const float by1 = by0 + (float)(BROWS * BH - 1);
-            __local uchar *list = l_list + lid * FWD_BATCH;
-            int n = 0;
-            for (int j = 0; j < count; j++) {
-                const float4 bb = l_box[j];
-                list[n] = (uchar)j;   /* branch-free append: kept when the box reaches the block */
-                n += (bb.x <= bx1) & (bb.y >= bx0) & (bb.z <= by1) & (bb.w >= by0);
-            }
-            l_len[lid] = n;
+        for (int j = lid; j < (count + 7) / 8 * 8; j += N_WI) {
+            if (j < count)
+                stage_gaussian(rec, sorted_values[base + j], j, FWD_BATCH, l_mean, l_cop, l_feat, l_thr, l_box);
+            else
+                stage_no_box(j, FWD_BATCH, l_box);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
-        const int n_mine = l_len[my_blk];
-        __local const uchar *mine = l_list + my_blk * FWD_BATCH;
         if (!VALL(done)) {
             /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
@@ -182,38 +197,37 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
             for (int c = 0; c < C; c++) a_cur[c] = acc[c];
             intV last_cur = last;
             intV done_cur = done;
-            /* the list's entries whose box reaches this block's rows (the list tested x), in
-             * order, appended branch-free */
-            uchar hits[FWD_BATCH];
-            int n_hits = 0;
-            for (int i = 0; i < n_mine; i++) {
-                const int j = mine[i];
-                const float4 bb = l_box[j];
-                hits[n_hits] = (uchar)j;
-                n_hits += (bb.z <= py1) & (bb.w >= py0);
-            }
-            for (int h = 0; h < n_hits; h++) {
-                const int j = hits[h];
-                const float4 cop = l_cop[j];
-                const float2 mean = l_mean[j];
-                const floatV dx = (floatV)(mean.x) - px;
-                const floatV dy = (floatV)(mean.y) - py;
-                /* gauss_power, lane for lane */
-                const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
-                intV use = ~done_cur & (power <= 0.0f) & (power >= l_thr[j]);
-                if (!VANY(use)) continue;
-                const floatV raw = cop.w * vexp_nonpos(power);
-                const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
-                use &= alpha >= ALPHA_MIN;
-                const floatV t_next = t_cur * (1.0f - alpha);
-                const intV stop = use & (t_next < T_STOP);
-                done_cur |= stop;
-                use &= ~stop;
-                const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
-                for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
-                t_cur = use != 0 ? t_next : t_cur;
-                last_cur = use != 0 ? (intV)(b * FWD_BATCH + j + 1) : last_cur;
-                if (VALL(done_cur)) break;
+            /* bit j % 32 of hits[j / 32]: entry j's cull box reaches this block */
+            uint hits[FWD_BATCH / 32];
+            for (int k = 0; k < FWD_BATCH / 32; k++) hits[k] = 0;
+            for (int j0 = 0; j0 < count; j0 += 8)
+                hits[j0 >> 5] |= box_hits8(l_box, FWD_BATCH, j0, px0, px1, py0, py1) << (j0 & 31);
+            for (int k = 0; k < (count + 31) / 32 && !VALL(done_cur); k++) {
+                uint bits = hits[k];
+                while (bits != 0) {   /* in order: front to back */
+                    const int j = 32 * k + (31 - clz1(bits & (0u - bits)));
+                    bits &= bits - 1u;
+                    const float4 cop = l_cop[j];
+                    const float2 mean = l_mean[j];
+                    const floatV dx = (floatV)(mean.x) - px;
+                    const floatV dy = (floatV)(mean.y) - py;
+                    /* gauss_power, lane for lane */
+                    const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+                    intV use = ~done_cur & (power <= 0.0f) & (power >= l_thr[j]);
+                    if (!VANY(use)) continue;
+                    const floatV raw = cop.w * vexp_nonpos(power);
+                    const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                    use &= alpha >= ALPHA_MIN;
+                    const floatV t_next = t_cur * (1.0f - alpha);
+                    const intV stop = use & (t_next < T_STOP);
+                    done_cur |= stop;
+                    use &= ~stop;
+                    const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
+                    for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
+                    t_cur = use != 0 ? t_next : t_cur;
+                    last_cur = use != 0 ? (intV)(b * FWD_BATCH + j + 1) : last_cur;
+                    if (VALL(done_cur)) break;
+                }
             }
             T = t_cur;
             for (int c = 0; c < C; c++) acc[c] = a_cur[c];

@@ -26,7 +26,7 @@
 #include "common.h"
 #include "vexp.h"
 #define RASTERIZE_VEC_HELPERS_ONLY
-#include "rasterize_vec.cl"   /* REC4, stage_gaussian; gauss_power, skip_threshold, cull_box, ... */
+#include "rasterize_vec.cl"   /* REC4, stage_gaussian, box_hits8; gauss_power, skip_threshold, ... */
 
 #ifndef DETERMINISTIC
 #define DETERMINISTIC 0
@@ -39,36 +39,6 @@
 #if BATCH > 32 || BATCH % 8 != 0
 #error "a work-item's hit and written-slot masks are one 32-bit word per batch, tested 8 entries at a time"
 #endif
-
-/* stage_gaussian (rasterize_vec.cl) with the cull box stored by coordinate, so that a work-item
- * tests 8 entries' boxes with one vector compare per coordinate */
-inline void stage_gaussian_bwd(__global const float4 *rec, int g, int j, __local float2 *l_mean,
-                               __local float4 *l_cop, __local float *l_feat, __local float *l_thr,
-                               __local float *l_box) {
-    __global const float4 *r = rec + g * REC4;
-    l_cop[j] = r[0];
-    const float4 bb = r[1];
-    l_box[j] = bb.x; l_box[BATCH + j] = bb.y; l_box[2 * BATCH + j] = bb.z; l_box[3 * BATCH + j] = bb.w;
-    const float4 m = r[2];
-    l_mean[j] = m.xy;
-    l_thr[j] = m.z;
-    __global const float *f = (__global const float *)(r + 3);
-    for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
-}
-
-/* 8 consecutive floats of local memory (element loads, merged into one vector load; PoCL calls
- * vload8 out of line) */
-inline float8 lload8(__local const float *p) {
-    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
-}
-
-/* bit l set where lane l of the mask t (-1 / 0 per lane) is set */
-inline uint mask_bits8(int8 t) {
-    const int8 b = t & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
-    const int4 c = b.lo | b.hi;
-    const int2 d = c.lo | c.hi;
-    return (uint)(d.x | d.y);
-}
 
 /* The lane sums of a hit's gradient terms, in the order of vhsum4 (vexp.h) value for value, so the
  * same bits: at 16 lanes s = v.lo + v.hi, then the adjacent pairs of s, then the pairs of those
@@ -165,10 +135,9 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             if (j < count) {
                 const int g = sorted_values[base + j];
                 l_gid[j] = g;
-                stage_gaussian_bwd(rec, g, j, l_mean, l_cop, l_feat, l_thr, l_box);
-            } else {   /* past the walk: a box that reaches no block */
-                l_box[j] = MAXFLOAT; l_box[BATCH + j] = -MAXFLOAT;
-                l_box[2 * BATCH + j] = MAXFLOAT; l_box[3 * BATCH + j] = -MAXFLOAT;
+                stage_gaussian(rec, g, j, BATCH, l_mean, l_cop, l_feat, l_thr, l_box);
+            } else {   /* past the walk */
+                stage_no_box(j, BATCH, l_box);
             }
         }
 #if HAVE_PREFETCH
@@ -187,11 +156,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             /* bit j: batch entry j's cull box reaches this block (8 entries per test); walked
              * from the highest bit down, back to front */
             uint hitmask = 0;
-            for (int j0 = 0; j0 < count; j0 += 8) {
-                const int8 t = (lload8(l_box + j0) <= px1) & (lload8(l_box + BATCH + j0) >= px0) &
-                               (lload8(l_box + 2 * BATCH + j0) <= py1) & (lload8(l_box + 3 * BATCH + j0) >= py0);
-                hitmask |= mask_bits8(t) << j0;
-            }
+            for (int j0 = 0; j0 < count; j0 += 8)
+                hitmask |= box_hits8(l_box, BATCH, j0, px0, px1, py0, py1) << j0;
             uint wrote = 0;
             while (hitmask != 0) {
                 const int j = 31 - clz1(hitmask);

@@ -134,10 +134,13 @@ def test_tiny_scene_has_work_for_every_lane():
 def test_variants_too_big_for_local_memory_are_skipped(fresh, monkeypatch, capfd):
     """A device with little local memory: lane counts whose kernels do not fit are passed over
     without a probe, and the line says why (fewer lanes need more: more work-items per tile)."""
+    need = {w: max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], w), RZ.fwd_vec_local_bytes(6))
+            for w in (16, 8, 4)}
+    assert need[16] <= need[8] < need[4]
+
     class Small:
         name, is_gpu, is_oclgrind = "small device", False, False
-        local_mem_size = max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], 16),
-                             RZ.fwd_vec_local_bytes(6, 16, 4))   # 16 lanes just fit, 8 and 4 do not
+        local_mem_size = need[8]   # 16 and 8 lanes just fit, 4 do not
 
         def __init__(self):
             self.cache = {}   # the Runtime's per-device cache (raster_choice keeps its choice there)
@@ -148,8 +151,7 @@ def test_variants_too_big_for_local_memory_are_skipped(fresh, monkeypatch, capfd
         return P.Verdict(False, "planted failure", 0.0, "build")
     monkeypatch.setattr(P, "verdict", fake_verdict)
     ch = RZ.raster_choice(Small(), 6)
-    assert ch == RZ.RasterChoice("scalar") and probed == [16]
+    assert ch == RZ.RasterChoice("scalar") and probed == [16, 8]
     line, = capfd.readouterr().err.strip().splitlines()
-    assert "16 lanes: planted failure" in line
-    need8 = max(RZ.vec_bwd_local_bytes(6, RZ.VEC_BWD_BATCHES[-1], 8), RZ.fwd_vec_local_bytes(6, 8, 4))
-    assert f"8 lanes: needs {need8} bytes of local memory" in line and "4 lanes: needs" in line
+    assert "16 lanes: planted failure" in line and "8 lanes: planted failure" in line
+    assert f"4 lanes: needs {need[4]} bytes of local memory" in line

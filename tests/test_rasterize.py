@@ -101,7 +101,7 @@ def skip_unless_fits(rt, variant, C):
     32 KiB: the 4-lane adjoint with 9 channels does not fit; raster_choice never picks it there)."""
     if variant.startswith("vector"):
         vw = int(variant[6:])
-        need = max(fwd_vec_local_bytes(C, vw, vec_block(vw)[0]), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], vw))
+        need = max(fwd_vec_local_bytes(C), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], vw))
         if need > rt.local_mem_size:
             pytest.skip(f"{variant} with C={C} needs {need} bytes of local memory, {rt.name} has {rt.local_mem_size}")
 

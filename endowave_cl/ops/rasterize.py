@@ -40,7 +40,6 @@ VEC_WIDTHS = (16, 8, 4)                     # lane counts tried on a CPU device,
 ENV_VEC_BLOCK_W = "ENDOWAVE_RASTER_BW"      # width of a work-item's pixel block (divides the lanes)
 VEC_BLOCK_W = 4                             # default: 4 x 4 pixel blocks for 16 lanes (squarest: fewest
                                             # Gaussian-block pairs walked)
-VEC_BLOCK_ROWS = 4                          # rows of blocks sharing a culling list (BROWS)
 VARIANTS = ("scalar", "vector")
 
 
@@ -117,7 +116,7 @@ def explain_choice(rt, C: int = 6):
             failed.append(f"{w} lanes: {e}")
             notes.append(failed[-1])
             continue
-        need = max(fwd_vec_local_bytes(C, w, bw), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], w))
+        need = max(fwd_vec_local_bytes(C), vec_bwd_local_bytes(C, VEC_BWD_BATCHES[-1], w))
         if need > rt.local_mem_size:
             if forced:   # nothing to probe: rasterize says that it does not fit
                 return RasterChoice("vector", w, bw), notes + [f"{w} lanes (too big for local memory)"], failed
@@ -161,8 +160,8 @@ def vec_block(vw: int = None) -> tuple:
     if vw % bw or bw > TILE:
         raise ValueError(f"{ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
     bh = vw // bw
-    if TILE // bh < VEC_BLOCK_ROWS:
-        raise ValueError(f"block {bw} x {bh}: at most {TILE // VEC_BLOCK_ROWS} rows")
+    if TILE % bh:
+        raise ValueError(f"block {bw} x {bh}: its {bh} rows must divide the tile's {TILE}")
     return bw, bh
 
 
@@ -183,12 +182,11 @@ def fwd_local_bytes(C: int) -> int:
     return TILE * TILE * per_gaussian + 16 * 4 + 8
 
 
-def fwd_vec_local_bytes(C: int, vw: int, bw: int) -> int:
-    """Local memory of the rasterize_vec kernel (mirror of its __local arrays)."""
-    bh = vw // bw
-    n_blk = (TILE // bw) * (TILE // bh // VEC_BLOCK_ROWS)
-    per_gaussian = 8 + 16 + 4 * C + 4 + 16 + n_blk   # mean, cop, feat, thr, box, list slots
-    return TILE * TILE * per_gaussian + 4 * n_blk + 8
+def fwd_vec_local_bytes(C: int) -> int:
+    """Local memory of the rasterize_vec kernel (mirror of its __local arrays): the same for every
+    lane count (each work-item keeps its batch's hit mask in private memory)."""
+    per_gaussian = 8 + 16 + 4 * C + 4 + 16            # mean, cop, feat, thr, box
+    return TILE * TILE * per_gaussian + 8
 
 
 VEC_BWD_BATCHES = (32, 16, 8)   # Gaussians per batch of rasterize_vec_bwd.cl, largest that fits first
@@ -273,7 +271,7 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
     tiles_x, _, gsize, lsize = _grid(width, height)
     ch = choice or raster_choice(rt, C)
     if ch.variant == "vector":
-        _check_local(rt, fwd_vec_local_bytes(C, ch.vw, ch.bw), "rasterize", C)
+        _check_local(rt, fwd_vec_local_bytes(C), "rasterize", C)
         opts = vec_options(C, ch)
         rec = _vec_records(rt, means2d, conic, opac, features, opts)
         k = rt.kernel("rasterize_vec.cl", "rasterize_vec", opts)
@@ -292,7 +290,7 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
 
 def vec_options(C: int, ch: RasterChoice):
     """Build options of rasterize_vec.cl for C channels and the variant ch."""
-    return _options(C) + [f"-DVW={ch.vw}", f"-DBW={ch.bw}", f"-DBROWS={VEC_BLOCK_ROWS}"]
+    return _options(C) + [f"-DVW={ch.vw}", f"-DBW={ch.bw}"]
 
 
 def vec_bwd_options(rt, C: int, ch: RasterChoice, det: bool):
