@@ -163,6 +163,18 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
     intV last = (intV)(0);
     intV done = ~inside;                         /* -1 where done */
 
+#if HAVE_PREFETCH
+    /* the first batch of records of the next two tiles, into L2 while this tile works: most tiles
+     * have one batch, whose records its own prefetch below asks for too late to hide the gather */
+    for (int nt = w.tile + 1; nt <= w.tile + 2 && nt < tiles_x * (int)get_num_groups(1); nt++) {
+        const int2 nr = tile_ranges[nt];
+        for (int j = lid; j < min(FWD_BATCH, nr.y - nr.x); j += N_WI) {
+            __global const float4 *r = rec + sorted_values[nr.x + j] * REC4;
+            PREFETCH_L2(r);
+            PREFETCH_L2(r + REC4 - 1);
+        }
+    }
+#endif
     if (lid < 2) l_done[lid] = 0;
     barrier(CLK_LOCAL_MEM_FENCE);
 
