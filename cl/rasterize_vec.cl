@@ -238,7 +238,7 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
                     for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
                     t_cur = use != 0 ? t_next : t_cur;
                     last_cur = use != 0 ? (intV)(b * FWD_BATCH + j + 1) : last_cur;
-                    if (VALL(done_cur)) break;
+                    if (VANY(stop) && VALL(done_cur)) break;   /* only a stop can finish the block */
                 }
             }
             T = t_cur;
