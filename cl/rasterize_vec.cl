@@ -13,7 +13,9 @@
  * order; vexp_nonpos equals exp_nonpos bit for bit): skip power > 0, alpha = min(ALPHA_MAX, opac G),
  * skip alpha < ALPHA_MIN, stop before a Gaussian that would bring T below T_STOP.  Lanes are masked
  * (vector ?:): a lane that skips or is done adds nothing; the work-item leaves the batch once all its
- * lanes are done, and the group stops loading batches once every work-item is done.
+ * lanes are done, and the group stops loading batches once every work-item is done.  The walk keeps
+ * each adding hit's weights alpha T; the colour is summed from them after the walk, per channel in
+ * the hits' order (the same bits as adding it hit by hit).
  *
  * Culling (exact, as in rasterize.cl): per batch, each work-item tests the staged cull boxes against
  * its block 8 at a time (box_hits8) into a bit mask of the batch's entries, then walks the set bits
@@ -205,8 +207,9 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
         if (!VALL(done)) {
             /* work on copies: the originals live across barriers (PoCL keeps them in memory) */
             floatV t_cur = T;
-            floatV a_cur[C];
-            for (int c = 0; c < C; c++) a_cur[c] = acc[c];
+            floatV wts[FWD_BATCH];        /* the weights alpha T of the hits that add colour, in order */
+            uchar wj[FWD_BATCH];          /* and their batch entries */
+            int n_add = 0;
             intV last_cur = last;
             intV done_cur = done;
             /* bit j % 32 of hits[j / 32]: entry j's cull box reaches this block */
@@ -235,14 +238,26 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
                     done_cur |= stop;
                     use &= ~stop;
                     const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
-                    for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
+                    wts[n_add] = w;
+                    wj[n_add++] = (uchar)j;
                     t_cur = use != 0 ? t_next : t_cur;
                     last_cur = use != 0 ? (intV)(b * FWD_BATCH + j + 1) : last_cur;
                     if (VANY(stop) && VALL(done_cur)) break;   /* only a stop can finish the block */
                 }
             }
+            /* The colour sums, after the walk: the same additions in the same order per channel as
+             * if made hit by hit, but with the C accumulators in registers (the walk itself needs
+             * too many for them, and an accumulator in memory makes a chain through the stores). */
+            floatV a[C];
+            for (int c = 0; c < C; c++) a[c] = acc[c];
+            for (int h = 0; h < n_add; h++) {
+                const floatV wh = wts[h];
+                __local const float *f = l_feat + wj[h] * C;
+#pragma unroll
+                for (int c = 0; c < C; c++) a[c] += f[c] * wh;
+            }
+            for (int c = 0; c < C; c++) acc[c] = a[c];
             T = t_cur;
-            for (int c = 0; c < C; c++) acc[c] = a_cur[c];
             last = last_cur;
             done = done_cur;
         }
