@@ -10,6 +10,11 @@
  * own `last`.  Per lane the skip tests are those of the forward pass (same helpers, vexp_nonpos ==
  * exp_nonpos bit for bit), so the same Gaussians count as contributors.
  *
+ * Per batch, the walk over the work-item's hits (back to front) carries T and D and keeps, for each
+ * hit that adds, the weights alpha T and the two terms that need the carried values; the gradient
+ * terms of the kept hits and their lane sums follow in a second loop, which carries nothing (the
+ * same operations on the same values, so the same bits as doing them in the walk).
+ *
  * Reduction, without atomics in local memory and without a barrier per Gaussian: for each entry j
  * of the batch, each work-item whose lanes use it sums its lanes' NV gradient terms (lane_sum8, a
  * fixed order) and stores them as NSV float4 to its own slot l_part4[j][work-item], and marks bit j
@@ -159,64 +164,75 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             for (int j0 = 0; j0 < count; j0 += 8)
                 hitmask |= box_hits8(l_box, BATCH, j0, px0, px1, py0, py1) << j0;
             uint wrote = 0;
+            /* the walk (back to front) carries T and D; it keeps, per hit that adds, the values the
+             * gradient terms need, and the terms and their lane sums follow per kept hit */
+            floatV k_w[BATCH], k_vp[BATCH], k_vg[BATCH];
+            uchar k_j[BATCH];
+            int n_kept = 0;
             while (hitmask != 0) {
                 const int j = 31 - clz1(hitmask);
                 hitmask ^= 1u << j;
+                const float4 cop = l_cop[j];
+                const float2 mean = l_mean[j];
+                const floatV dx = (floatV)(mean.x) - px;
+                const floatV dy = (floatV)(mean.y) - py;
+                const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+                intV use = lane_mask((intV)(b * BATCH + j) < last) & lane_mask(power <= 0.0f) &
+                           lane_mask(power >= l_thr[j]);   /* lane_mask: vexp.h */
+                if (!VANY(use)) continue;
+                const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
+                const floatV raw = cop.w * G;
+                const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                use &= lane_mask(alpha >= ALPHA_MIN);
+                if (!VANY(use)) continue;
+                const floatV inv_om = 1.0f / (1.0f - alpha);
+                t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
+                const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
+                /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
+                floatV dot = (floatV)(0.0f);
+#pragma unroll
+                for (int c = 0; c < C; c++) dot += vo[c] * l_feat[j * C + c];
+                const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
+                d_cur += dot * w;
+                /* the ALPHA_MAX clamp blocks the gradient to power and opac */
+                const intV grad = use & lane_mask(raw <= ALPHA_MAX);
+                k_w[n_kept] = w;
+                k_vp[n_kept] = grad != 0 ? v_al * alpha : (floatV)(0.0f);
+                k_vg[n_kept] = grad != 0 ? v_al * G : (floatV)(0.0f);
+                k_j[n_kept++] = (uchar)j;
+                wrote |= 1u << j;
+            }
+            for (int h = 0; h < n_kept; h++) {
+                const int j = k_j[h];
                 __local float4 *slot = l_part4 + (j * N_WI + lid) * NSV;
-                {
-                    const float4 cop = l_cop[j];
-                    const float2 mean = l_mean[j];
-                    const floatV dx = (floatV)(mean.x) - px;
-                    const floatV dy = (floatV)(mean.y) - py;
-                    const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
-                    intV use = lane_mask((intV)(b * BATCH + j) < last) & lane_mask(power <= 0.0f) &
-                               lane_mask(power >= l_thr[j]);   /* lane_mask: vexp.h */
-                    if (VANY(use)) {
-                        const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
-                        const floatV raw = cop.w * G;
-                        const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
-                        use &= lane_mask(alpha >= ALPHA_MIN);
-                        if (VANY(use)) {
-                            floatV term[4 * NSV];   /* per-lane gradient terms, zeros past NV */
-                            const floatV inv_om = 1.0f / (1.0f - alpha);
-                            t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
-                            const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
-                            /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
-                            floatV dot = (floatV)(0.0f);
+                const float4 cop = l_cop[j];
+                const float2 mean = l_mean[j];
+                const floatV dx = (floatV)(mean.x) - px;
+                const floatV dy = (floatV)(mean.y) - py;
+                const floatV w = k_w[h], v_power = k_vp[h];
+                floatV term[4 * NSV];   /* per-lane gradient terms, zeros past NV */
+                term[0] = -v_power * (cop.x * dx + cop.y * dy);
+                term[1] = -v_power * (cop.z * dy + cop.y * dx);
+                term[2] = -0.5f * v_power * dx * dx;
+                term[3] = -v_power * dx * dy;
+                term[4] = -0.5f * v_power * dy * dy;
+                term[5] = k_vg[h];
 #pragma unroll
-                            for (int c = 0; c < C; c++) {
-                                dot += vo[c] * l_feat[j * C + c];
-                                term[6 + c] = vo[c] * w;
-                            }
-                            const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
-                            d_cur += dot * w;
+                for (int c = 0; c < C; c++) term[6 + c] = vo[c] * w;
 #pragma unroll
-                            for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
-                            /* the ALPHA_MAX clamp blocks the gradient to power and opac */
-                            const intV grad = use & lane_mask(raw <= ALPHA_MAX);
-                            const floatV v_power = grad != 0 ? v_al * alpha : (floatV)(0.0f);
-                            term[0] = -v_power * (cop.x * dx + cop.y * dy);
-                            term[1] = -v_power * (cop.z * dy + cop.y * dx);
-                            term[2] = -0.5f * v_power * dx * dx;
-                            term[3] = -v_power * dx * dy;
-                            term[4] = -0.5f * v_power * dy * dy;
-                            term[5] = grad != 0 ? v_al * G : (floatV)(0.0f);
+                for (int k = NV; k < 4 * NSV; k++) term[k] = (floatV)(0.0f);
 #pragma unroll
-                            for (int v = 0; v + 1 < NSV; v += 2) {   /* 8 terms at a time */
-                                const float8 s = lane_sum8(term[4 * v], term[4 * v + 1], term[4 * v + 2],
-                                                           term[4 * v + 3], term[4 * v + 4], term[4 * v + 5],
-                                                           term[4 * v + 6], term[4 * v + 7]);
-                                slot[v] = s.lo;
-                                slot[v + 1] = s.hi;
-                            }
-#if NSV % 2
-                            slot[NSV - 1] = lane_sum4(term[4 * NSV - 4], term[4 * NSV - 3], term[4 * NSV - 2],
-                                                      term[4 * NSV - 1]);
-#endif
-                            wrote |= 1u << j;
-                        }
-                    }
+                for (int v = 0; v + 1 < NSV; v += 2) {   /* 8 terms at a time */
+                    const float8 s = lane_sum8(term[4 * v], term[4 * v + 1], term[4 * v + 2],
+                                               term[4 * v + 3], term[4 * v + 4], term[4 * v + 5],
+                                               term[4 * v + 6], term[4 * v + 7]);
+                    slot[v] = s.lo;
+                    slot[v + 1] = s.hi;
                 }
+#if NSV % 2
+                slot[NSV - 1] = lane_sum4(term[4 * NSV - 4], term[4 * NSV - 3], term[4 * NSV - 2],
+                                          term[4 * NSV - 1]);
+#endif
             }
             l_wrote[lid] = wrote;
             T = t_cur;
