@@ -40,7 +40,8 @@ inline void store4(__global float *p, float4 v) {
  *   sqrt1, sqrt4, sqrt8 the correctly rounded square root (the same bits as sqrt: LLVM's sqrt, which
  *                PoCL's out-of-line sqrt also runs; lane by lane, which the compiler joins into
  *                one vector instruction);
- *   clz1         the leading zero bits of a nonzero uint (one lzcnt / bsr). */
+ *   clz1, clz64  the leading zero bits of a nonzero uint / ulong (one lzcnt / bsr; OpenCL C's
+ *                ulong is clang's unsigned long: __builtin_clzll would take a 128-bit long long). */
 #ifndef ROWS_AHEAD
 #define ROWS_AHEAD 4   /* adam_step_rows, gather_params: work-items between a row's prefetch and its use */
 #endif
@@ -59,6 +60,7 @@ inline void prefetch_floats_l2(__global const float *p, const int n) {
 }
 inline float sqrt1(float x) { return __builtin_sqrtf(x); }
 inline int clz1(uint x) { return __builtin_clz(x); }   /* x != 0 */
+inline int clz64(ulong x) { return __builtin_clzl(x); }   /* x != 0 */
 inline float4 sqrt4(float4 x) {
     return (float4)(__builtin_sqrtf(x.x), __builtin_sqrtf(x.y), __builtin_sqrtf(x.z), __builtin_sqrtf(x.w));
 }
@@ -73,6 +75,7 @@ inline float8 sqrt8(float8 x) {
 #define PREFETCH_L2(p) ((void)0)
 inline float sqrt1(float x) { return sqrt(x); }
 inline int clz1(uint x) { return (int)clz(x); }
+inline int clz64(ulong x) { return (int)clz(x); }
 inline float4 sqrt4(float4 x) { return sqrt(x); }
 inline float8 sqrt8(float8 x) { return sqrt(x); }
 #endif

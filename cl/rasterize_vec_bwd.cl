@@ -41,8 +41,15 @@
 #ifndef BATCH
 #define BATCH 16
 #endif
-#if BATCH > 32 || BATCH % 8 != 0
-#error "a work-item's hit and written-slot masks are one 32-bit word per batch, tested 8 entries at a time"
+#if BATCH > 64 || BATCH % 8 != 0
+#error "a work-item's hit and written-slot masks are one word per batch (at most 64 bits), tested 8 entries at a time"
+#endif
+#if BATCH > 32
+typedef ulong bmask;           /* a bit per entry of a batch */
+#define MASK_TOP(m) (63 - clz64(m))
+#else
+typedef uint bmask;
+#define MASK_TOP(m) (31 - clz1(m))
 #endif
 
 /* The lane sums of a hit's gradient terms, in the order of vhsum4 (vexp.h) value for value, so the
@@ -85,7 +92,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local float l_thr[BATCH];
     __local float l_box[4 * BATCH];              /* cull boxes by coordinate: xmin[BATCH], xmax, ymin, ymax */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
-    __local uint l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
+    __local bmask l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
 
     const TileWork w = tile_work(BW, BH, tiles_x);
@@ -160,18 +167,18 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             floatV d_cur = D;
             /* bit j: batch entry j's cull box reaches this block (8 entries per test); walked
              * from the highest bit down, back to front */
-            uint hitmask = 0;
+            bmask hitmask = 0;
             for (int j0 = 0; j0 < count; j0 += 8)
-                hitmask |= box_hits8(l_box, BATCH, j0, px0, px1, py0, py1) << j0;
-            uint wrote = 0;
+                hitmask |= (bmask)box_hits8(l_box, BATCH, j0, px0, px1, py0, py1) << j0;
+            bmask wrote = 0;
             /* the walk (back to front) carries T and D; it keeps, per hit that adds, the values the
              * gradient terms need, and the terms and their lane sums follow per kept hit */
             floatV k_w[BATCH], k_vp[BATCH], k_vg[BATCH];
             uchar k_j[BATCH];
             int n_kept = 0;
             while (hitmask != 0) {
-                const int j = 31 - clz1(hitmask);
-                hitmask ^= 1u << j;
+                const int j = MASK_TOP(hitmask);
+                hitmask ^= (bmask)1 << j;
                 const float4 cop = l_cop[j];
                 const float2 mean = l_mean[j];
                 const floatV dx = (floatV)(mean.x) - px;
@@ -200,7 +207,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                 k_vp[n_kept] = grad != 0 ? v_al * alpha : (floatV)(0.0f);
                 k_vg[n_kept] = grad != 0 ? v_al * G : (floatV)(0.0f);
                 k_j[n_kept++] = (uchar)j;
-                wrote |= 1u << j;
+                wrote |= (bmask)1 << j;
             }
             for (int h = 0; h < n_kept; h++) {
                 const int j = k_j[h];
@@ -250,7 +257,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
             /* branch-free: a slot not written this batch (stale) adds +0, which leaves every sum
              * as it was (a sum from +0 is never -0), so the same bits as skipping it */
             for (int i = 0; i < N_WI; i++) {
-                const int4 keep = (int4)(-(int)((l_wrote[i] >> j) & 1u));
+                const int4 keep = (int4)(-(int)((l_wrote[i] >> j) & 1));
 #pragma unroll
                 for (int v = 0; v < NSV; v++) sum[v] += as_float4(as_int4(src[i * NSV + v]) & keep);
             }

@@ -6,6 +6,7 @@ import pyopencl.array as cla
 import pytest
 
 from conftest import small
+import endowave_cl.ops.rasterize as RZ
 from endowave_cl.ops.rasterize import (ENV_VARIANT, ENV_VEC_BLOCK_W, ENV_VEC_WIDTH, VEC_BWD_BATCHES,
                                        accumulate_densify_stats, fwd_vec_local_bytes, rasterize, rasterize_bwd,
                                        vec_bwd_local_bytes, vec_block)
@@ -289,6 +290,34 @@ def test_adjoint_vector_widths(rt, monkeypatch, vw, bw, case):
     for det in (False, True):
         got, ref = run_bwd(rt, sc, case[0], deterministic=det)
         check_bwd(got, ref)
+
+
+def test_adjoint_vector_batches_same_bits(rt, monkeypatch):
+    """The vector adjoint gives the same bits with every batch size it can pick (its hit and
+    written-slot masks are 32-bit words up to 32 entries, 64-bit above) in the deterministic mode,
+    and the same values to rounding with atomic adds (whose order varies between runs)."""
+    monkeypatch.setenv(ENV_VARIANT, "vector")
+    monkeypatch.setenv(ENV_VEC_WIDTH, "16")
+    require_builds(rt, 16, vec_block(16)[0])
+    sc = make_scene(*BWD_CASES[4])   # several batches per tile
+    batches = tuple(RZ.VEC_BWD_BATCHES)
+    assert max(batches) > 32 >= min(batches)   # both kinds of mask
+    for det in (True, False):
+        outs = []
+        for batch in batches:
+            if RZ.vec_bwd_local_bytes(sc["features"].shape[1], batch, 16) > rt.local_mem_size:
+                continue
+            monkeypatch.setattr(RZ, "VEC_BWD_BATCHES", (batch,))
+            outs.append((batch, run_bwd(rt, sc, 4, deterministic=det)[0]))
+        assert len(outs) >= 2
+        for batch, got in outs[1:]:
+            for name, a in got.items():
+                b = outs[0][1][name]
+                if det:
+                    assert np.array_equal(a.view(np.uint32), b.view(np.uint32)), (batch, name)
+                else:
+                    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * max(np.abs(b).max(), 1e-6),
+                                               err_msg=f"{batch} {name}")
 
 
 @pytest.mark.parametrize("case", BWD_CASES)

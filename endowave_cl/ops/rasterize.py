@@ -189,7 +189,7 @@ def fwd_vec_local_bytes(C: int) -> int:
     return TILE * TILE * per_gaussian + 8
 
 
-VEC_BWD_BATCHES = (32, 16, 8)   # Gaussians per batch of rasterize_vec_bwd.cl, largest that fits first
+VEC_BWD_BATCHES = (64, 32, 16, 8)   # Gaussians per batch of rasterize_vec_bwd.cl, largest that fits first
 
 
 def vec_bwd_local_bytes(C: int, batch: int, vw: int) -> int:
