@@ -92,7 +92,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
     __local float l_thr[BATCH];
     __local float l_box[4 * BATCH];              /* cull boxes by coordinate: xmin[BATCH], xmax, ymin, ymax */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
-    __local bmask l_wrote[N_WI];                  /* bit j: the work-item wrote its slot of entry j */
+    __local bmask l_wrote[N_WI];                 /* bit j: the work-item wrote its slot of entry j */
     __local int l_max_last;
 
     const TileWork w = tile_work(BW, BH, tiles_x);
