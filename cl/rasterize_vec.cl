@@ -54,6 +54,17 @@ inline void stage_gaussian(__global const float4 *rec, int g, int j, int nb, __l
     for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
 }
 
+/* Gaussian g's record (its first and last cache line) asked for into L1 / into L2 only; no-ops
+ * where the build has no prefetch (the callers leave out the address loads there: HAVE_PREFETCH) */
+inline void prefetch_record(__global const float4 *rec, int g) {
+    PREFETCH(rec + g * REC4);
+    PREFETCH(rec + g * REC4 + REC4 - 1);
+}
+inline void prefetch_record_l2(__global const float4 *rec, int g) {
+    PREFETCH_L2(rec + g * REC4);
+    PREFETCH_L2(rec + g * REC4 + REC4 - 1);
+}
+
 /* entry j of l_box [4, nb]: a box that reaches no block (entries past a batch's end, up to a
  * multiple of 8, which box_hits8 reads) */
 inline void stage_no_box(int j, int nb, __local float *l_box) {
@@ -170,11 +181,8 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
      * have one batch, whose records its own prefetch below asks for too late to hide the gather */
     for (int nt = w.tile + 1; nt <= w.tile + 2 && nt < tiles_x * (int)get_num_groups(1); nt++) {
         const int2 nr = tile_ranges[nt];
-        for (int j = lid; j < min(FWD_BATCH, nr.y - nr.x); j += N_WI) {
-            __global const float4 *r = rec + sorted_values[nr.x + j] * REC4;
-            PREFETCH_L2(r);
-            PREFETCH_L2(r + REC4 - 1);
-        }
+        for (int j = lid; j < min(FWD_BATCH, nr.y - nr.x); j += N_WI)
+            prefetch_record_l2(rec, sorted_values[nr.x + j]);
     }
 #endif
     if (lid < 2) l_done[lid] = 0;
@@ -190,11 +198,8 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
         const int base = range.x + b * FWD_BATCH;
         const int count = min(FWD_BATCH, range.y - base);
 #if HAVE_PREFETCH
-        for (int j = lid; j < count; j += N_WI) {   /* this work-item's records, all in flight */
-            __global const float4 *r = rec + sorted_values[base + j] * REC4;
-            PREFETCH(r);
-            PREFETCH(r + REC4 - 1);
-        }
+        for (int j = lid; j < count; j += N_WI)   /* this work-item's records, all in flight */
+            prefetch_record(rec, sorted_values[base + j]);
 #endif
         for (int j = lid; j < (count + 7) / 8 * 8; j += N_WI) {
             if (j < count)

@@ -134,11 +134,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
 #if HAVE_PREFETCH
     /* the first batch walked (the last one), whose records nothing else has asked for yet; each
      * batch then asks for the next one's while it is staged (below) */
-    for (int j = max(n_batches - 1, 0) * BATCH + lid; j < max_last; j += N_WI) {
-        __global const float4 *r = rec + sorted_values[range.x + j] * REC4;
-        PREFETCH(r);
-        PREFETCH(r + REC4 - 1);
-    }
+    for (int j = max(n_batches - 1, 0) * BATCH + lid; j < max_last; j += N_WI)
+        prefetch_record(rec, sorted_values[range.x + j]);
 #endif
     for (int b = n_batches - 1; b >= 0; b--) {
         const int base = range.x + b * BATCH;
@@ -154,11 +151,8 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
         }
 #if HAVE_PREFETCH
         if (b > 0)   /* the next batch walked (b - 1, full): its records' two cache lines */
-            for (int j = lid; j < BATCH; j += N_WI) {
-                __global const float4 *r = rec + sorted_values[base - BATCH + j] * REC4;
-                PREFETCH(r);
-                PREFETCH(r + REC4 - 1);
-            }
+            for (int j = lid; j < BATCH; j += N_WI)
+                prefetch_record(rec, sorted_values[base - BATCH + j]);
 #endif
         barrier(CLK_LOCAL_MEM_FENCE);
 
