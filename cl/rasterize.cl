@@ -30,13 +30,28 @@ inline float gauss_power(float4 cop, float2 d) {
 
 /* exp_nonpos: raster_common.h */
 
+/* An upper bound of ln(x) for a finite x >= 1 (normal) without a call (PoCL calls log out of line):
+ * x = 2^e m, m in [1, 2), log2(m) <= LOG2_POLY(m - 1.5) + LOG2_POLY_UP, the cubic's least-squares
+ * fit to log2 on [1, 2] lifted by its largest shortfall there (5.4e-4, float32 evaluation
+ * included) and 2e-4 more; at most 2.1e-3 above log2(m).  Used where a bound is enough. */
+#define LOG2_POLY_UP 7.4e-4f
+inline float ln_upper(float x) {
+    const int bits = as_int(x);
+    const float e = as_float((bits >> 23) | 0x4B000000) - (8388608.0f + 127.0f);   /* exponent, exact */
+    const float t = as_float((bits & 0x007fffff) | 0x3f800000) - 1.5f;             /* m - 1.5, exact */
+    const float p = ((0.15391242f * t - 0.33688030f) * t + 0.96116853f) * t + 0.58537829f;
+    return 0.693147181f * (e + (p + LOG2_POLY_UP));
+}
+
 /* Early skip without exp: alpha = min(ALPHA_MAX, opac exp(power)) < ALPHA_MIN whenever
  * power < log(ALPHA_MIN / opac) - SKIP_MARGIN.  SKIP_MARGIN (in log units, i.e. a 0.1% factor on
- * alpha) is far above the rounding of exp and log, so the skip never drops a Gaussian the exact
- * test keeps.  opac < ALPHA_MIN can never contribute: threshold +inf. */
+ * alpha) is far above the rounding of exp, so the skip never drops a Gaussian the exact test
+ * keeps.  The log is taken from below, -ln_upper(opac / ALPHA_MIN) (at most 1.5e-3 lower): a lower
+ * threshold only sends a few more pairs to the exact test, which skips them, so the results are
+ * those of the exact log.  opac < ALPHA_MIN can never contribute: threshold +inf. */
 #define SKIP_MARGIN 1e-3f
 inline float skip_threshold(float opacity) {
-    return opacity >= ALPHA_MIN ? log(ALPHA_MIN / opacity) - SKIP_MARGIN : INFINITY;
+    return opacity >= ALPHA_MIN ? -ln_upper(opacity / ALPHA_MIN) - SKIP_MARGIN : INFINITY;
 }
 
 /* Sub-block culling.  The tile is split into SUB x SUB pixel blocks; per batch, each block gets the
@@ -57,8 +72,8 @@ inline float4 cull_box(float2 mean, float4 cop, float thr) {   /* (xmin, xmax, y
     if (!(det > 0.0f && cop.x > 0.0f && cop.z > 0.0f))
         return (float4)(-INFINITY, INFINITY, -INFINITY, INFINITY);                  /* always */
     const float q = -2.0f * thr;
-    const float ex = sqrt(q * cop.z / det) * BOX_SLACK + BOX_PAD;
-    const float ey = sqrt(q * cop.x / det) * BOX_SLACK + BOX_PAD;
+    const float ex = sqrt1(q * cop.z / det) * BOX_SLACK + BOX_PAD;   /* sqrt1: common.h */
+    const float ey = sqrt1(q * cop.x / det) * BOX_SLACK + BOX_PAD;
     return (float4)(mean.x - ex, mean.x + ex, mean.y - ey, mean.y + ey);
 }
 

@@ -1,0 +1,45 @@
+"""The rasterizers' scalar helpers that decide skips (cl/rasterize.cl), built into a test kernel:
+ln_upper bounds ln from above by at most 1.5e-3, so skip_threshold never lies above the exact
+log(ALPHA_MIN / opac) - SKIP_MARGIN (a skip it makes, the exact test would make too)."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from endowave_cl.layout import ALPHA_MIN
+from endowave_cl.ops.rasterize import _options
+
+SOURCE = """
+#define RASTERIZE_HELPERS_ONLY
+#include "rasterize.cl"
+__kernel void helpers(__global const float *x, __global const float *opac, const int n,
+                      __global float *ln_up, __global float *thr) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    ln_up[i] = ln_upper(x[i]);
+    thr[i] = skip_threshold(opac[i]);
+}
+"""
+
+
+def test_ln_upper_and_skip_threshold_bound_the_exact_log(rt):
+    rng = np.random.default_rng(0)
+    # [1, 2) densely, every power of two and its neighbours (the exponent's steps), and [1, 1e6)
+    pows = np.float32(2.0) ** np.arange(0, 20, dtype=np.float32)
+    x = np.concatenate([np.linspace(1, 2, 100_001, dtype=np.float32)[:-1], pows,
+                        np.nextafter(pows, np.float32(np.inf)), np.nextafter(pows[1:], np.float32(0)),
+                        np.exp(rng.uniform(0, np.log(1e6), 100_000)).astype(np.float32)]).astype(np.float32)
+    opac = np.concatenate([rng.uniform(0.0, 1.0, x.size - 4), [0.0, ALPHA_MIN, np.nextafter(np.float32(ALPHA_MIN), 0),
+                                                               1.0]]).astype(np.float32)
+    prg = rt.program("rasterize.cl", _options(6), source=SOURCE)
+    q = rt.queue
+    d_x, d_o = cla.to_device(q, x), cla.to_device(q, opac)
+    ln_up, thr = cla.empty(q, x.size, np.float32), cla.empty(q, x.size, np.float32)
+    prg.helpers(q, (x.size,), None, d_x.data, d_o.data, np.int32(x.size), ln_up.data, thr.data)
+    over = ln_up.get().astype(np.float64) - np.log(x.astype(np.float64))
+    assert over.min() > 0 and over.max() < 1.5e-3, (over.min(), over.max())
+    t = thr.get().astype(np.float64)
+    keep = opac >= np.float32(ALPHA_MIN)
+    exact = np.log(np.float64(np.float32(ALPHA_MIN)) / opac[keep].astype(np.float64)) - 1e-3
+    assert np.all(t[keep] <= exact) and np.all(t[keep] > exact - 1.6e-3)
+    assert np.all(np.isinf(t[~keep]) & (t[~keep] > 0))
