@@ -29,14 +29,19 @@ void bin_counts(__global const int *radius,        /* [N] */
     const int i = get_global_id(0), l = get_local_id(0);
     uint lo = 0xFFFFFFFFu, hi = 0u;
     if (i < n) {
-        const int c = (radius[i] > 0) ? max(tiles_touched[i], 0) : 0;
+        const int tt = tiles_touched[i];
+        const int c = (radius[i] > 0 && tt > 0) ? tt : 0;
         counts[i] = c;
         if (c > 0) { lo = as_uint(depth[i]); hi = lo; }
     }
     l_lo[l] = lo; l_hi[l] = hi;
     barrier(CLK_LOCAL_MEM_FENCE);
     if (l == 0) {
-        for (int k = 1; k < BIN_WG; k++) { lo = min(lo, l_lo[k]); hi = max(hi, l_hi[k]); }
+        /* selects, not min / max: PoCL calls those out of line */
+        for (int k = 1; k < BIN_WG; k++) {
+            lo = l_lo[k] < lo ? l_lo[k] : lo;
+            hi = l_hi[k] > hi ? l_hi[k] : hi;
+        }
         if (lo <= hi) {
             atomic_min(&dbounds[0], lo);
             atomic_max(&dbounds[1], hi);
