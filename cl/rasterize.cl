@@ -30,10 +30,11 @@ inline float gauss_power(float4 cop, float2 d) {
 
 /* exp_nonpos: raster_common.h */
 
-/* An upper bound of ln(x) for a finite x >= 1 (normal) without a call (PoCL calls log out of line):
- * x = 2^e m, m in [1, 2), log2(m) <= LOG2_POLY(m - 1.5) + LOG2_POLY_UP, the cubic's least-squares
- * fit to log2 on [1, 2] lifted by its largest shortfall there (5.4e-4, float32 evaluation
- * included) and 2e-4 more; at most 2.1e-3 above log2(m).  Used where a bound is enough. */
+/* An upper bound of ln(x) for a normal x > 0 without a call (PoCL calls log out of line):
+ * x = 2^e m, m in [1, 2), and log2(m) <= p(m - 1.5) + LOG2_POLY_UP, with p the cubic least-squares
+ * fit to log2 on [1, 2] below, lifted by its largest shortfall there (5.4e-4, float32 evaluation
+ * included) and 2e-4 more: at most 2.1e-3 above log2(m), 1.5e-3 above ln(x).  (project4d's
+ * p4_log_upper, the tangent alone, is up to 0.09 above: enough for its tile rect.) */
 #define LOG2_POLY_UP 7.4e-4f
 inline float ln_upper(float x) {
     const int bits = as_int(x);

@@ -32,8 +32,8 @@
 
 /* Per-Gaussian record, written once per call by rasterize_vec_prep (one Gaussian per work-item)
  * and gathered per tile entry by the rasterize_vec kernels: one contiguous read instead of four
- * scattered arrays, and the skip threshold (a log) and cull box (two sqrt) computed once per Gaussian
- * instead of once per tile entry.  REC4 float4 per Gaussian:
+ * scattered arrays, and the skip threshold (a bound of a log) and cull box (two sqrt) computed once
+ * per Gaussian instead of once per tile entry.  REC4 float4 per Gaussian:
  *   [0] (a, b, c, opac)   [1] cull box (xmin, xmax, ymin, ymax)   [2] (mean x, mean y, thr, 0)
  *   [3 ..] features[0 .. C-1], zero-padded to a multiple of 4. */
 #define REC4 (3 + (C + 3) / 4)
