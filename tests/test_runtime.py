@@ -317,3 +317,20 @@ def test_view_is_reshape_without_a_copy(rt):
         R.view(x, (5, 5))
     with pytest.raises(ValueError, match="not C-contiguous"):
         R.view(x[:, ::2], (12,))
+
+
+def test_ensure_opencl_script_checks_and_changes_nothing_where_a_device_builds(monkeypatch):
+    """tools/ensure_opencl.sh (the README commands run it): where the default device builds kernels,
+    it says which and exits 0 without installing anything."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    monkeypatch.delenv(R.ENV_DEVICE, raising=False)
+    monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
+    script = Path(__file__).resolve().parents[1] / "tools" / "ensure_opencl.sh"
+    r = subprocess.run(["bash", str(script)], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHON": sys.executable})
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert f"ensure_opencl: {R.choose_device(None).label} builds kernels" in r.stdout
+    assert "installing" not in r.stdout
