@@ -29,7 +29,7 @@ if ! grep -qi "unknown target cpu" <<<"$out"; then
     exit 1
 fi
 if ! command -v apt-get >/dev/null; then
-    echo "ensure_opencl: install your distribution's PoCL package (its ICD goes in /etc/OpenCL/vendors)" >&2
+    echo "ensure_opencl: install another PoCL (your distribution's package, or conda-forge's pocl) where the ICD loader finds it: /etc/OpenCL/vendors, or OCL_ICD_VENDORS" >&2
     exit 1
 fi
 SUDO=""
