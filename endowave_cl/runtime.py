@@ -200,8 +200,10 @@ def choose_device(spec: Optional[str] = None, entries: Optional[List[DeviceEntry
                 return entries[int(spec)]
         else:   # a name: of several matches, the first that builds kernels
             matches = [e for e in entries if spec.lower() in e.search_text]
+            if len(matches) == 1:
+                return matches[0]
             if matches:
-                return next((e for e in matches if len(matches) == 1 or build_problem(e) is None), matches[0])
+                return next((e for e in matches if build_problem(e) is None), matches[0])
         listing = "\n".join(f"  [{e.index}] {e.platform_index}:{e.device_index} {e.label}" for e in entries)
         hint = ""
         if "oclgrind" in spec.lower():
