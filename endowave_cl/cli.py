@@ -16,6 +16,7 @@ from . import __version__
 # name -> one-line help; the module is endowave_cl.commands.<name>
 COMMANDS = {
     "devices": "list OpenCL platforms and devices; mark the one that would be used",
+    "ingest": "turn a video file or a folder of frames (mono or stereo) into a scene (EndoNeRF layout)",
     "synth": "generate a synthetic endoscopic scene (EndoNeRF layout) with ground truth",
     "flow": "precompute pseudo ground-truth optical flow for a scene",
     "train": "train an EndoWave model on a scene",

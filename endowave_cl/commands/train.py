@@ -23,7 +23,8 @@ DEMO_MAX_GAUSSIANS = 40000       # densification cap for the demo (~2 per pixel)
 
 def add_arguments(p) -> None:
     from ..train.config import BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME
-    p.add_argument("scene", nargs="?", help="scene folder in the EndoNeRF layout (omit with --demo)")
+    p.add_argument("scene", nargs="?", help="scene folder in the EndoNeRF layout, or a video file (ingested into "
+                                            "RUN/scene with `endowave-cl ingest`'s defaults; omit with --demo)")
     p.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
     p.add_argument("--demo", action="store_true", help="train on the built-in synthetic scene (generated into RUN/demo_scene)")
     p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
@@ -109,6 +110,33 @@ def check_downscaled_size(scene_path, downscale: float) -> None:
                             f"{img_dir} (at least {MIN_IMAGE_SIZE} per side needed)")
 
 
+VIDEO_SCENE = "scene"    # RUN/scene: where `train VIDEO` ingests the video
+
+
+def ingest_video_into_run(video: Path, out: Path, quiet: bool = False) -> Path:
+    """RUN/scene ingested from ``video`` with ingest's defaults, or the one an earlier `train VIDEO`
+    made from the same file (a resume)."""
+    import json
+    from ..commands.ingest import report
+    from ..data.ingest import ingest
+    from ..errors import EndowaveError
+    scene = out / VIDEO_SCENE
+    if (scene / "poses_bounds.npy").is_file():
+        try:
+            src = json.loads((scene / "scene.json").read_text())["ingest"]["source"]
+        except (OSError, ValueError, KeyError, TypeError):
+            src = None
+        if src is not None and Path(src) == video.resolve():
+            print(f"using {scene}, ingested from {video} earlier")
+            return scene
+        raise EndowaveError(f"{scene}: holds a scene made from {src or 'another source'}, not {video} "
+                            f"(use another --out, or give that scene folder)")
+    print(f"{video}: a video; ingesting it into {scene} (defaults of `endowave-cl ingest`; run that "
+          f"command for a frame range, size, intrinsics, masks or stereo depth)")
+    report(ingest(video, scene, progress=not quiet))
+    return scene
+
+
 def run(args) -> int:
     from ..data.scene import load_scene
     from ..errors import EndowaveError
@@ -126,6 +154,8 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise EndowaveError(f"{out}: exists and is not a folder (--out must be a run folder)")
     scene_path = Path(args.scene) if args.scene else out / "demo_scene"
+    if args.scene and scene_path.is_file():          # a video: ingest it into the run folder first
+        scene_path = ingest_video_into_run(scene_path, out, quiet=args.quiet)
     if args.demo and not (scene_path / "poses_bounds.npy").is_file():
         from ..data.synth import make_synthetic_scene
         w, h, n = DEMO_SIZE
