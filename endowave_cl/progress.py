@@ -10,7 +10,6 @@ seconds between plain lines (default 5).
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
 from typing import Iterable, Optional
@@ -29,6 +28,11 @@ def _fmt_time(s: float) -> str:
     return f"{s}s"
 
 
+def _env_get(name):
+    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
+    return env.get(name)
+
+
 class PlainProgress:
     """The part of tqdm's interface endowave-cl uses (update, set_postfix, write, close, iteration,
     with), printing plain lines to ``file`` at most every ``interval`` seconds."""
@@ -43,7 +47,7 @@ class PlainProgress:
         self.desc, self.unit, self.disable = desc, unit, disable
         self.file = file
         self.interval = float(interval if interval is not None else
-                              os.environ.get(ENV_INTERVAL) or DEFAULT_INTERVAL)
+                              _env_get(ENV_INTERVAL) or DEFAULT_INTERVAL)
         self.clock = clock
         self.t0 = self.last = clock()
         self.postfix = ""
@@ -109,7 +113,7 @@ class PlainProgress:
 
 
 def plain_wanted() -> bool:
-    mode = os.environ.get(ENV_MODE, "").strip().lower()
+    mode = _env_get(ENV_MODE)
     if mode in ("plain", "bar"):
         return mode == "plain"
     try:
@@ -122,7 +126,7 @@ def progress(iterable: Optional[Iterable] = None, total: Optional[int] = None, i
              desc: str = "", unit: str = "it", disable: bool = False, **tqdm_kw):
     """A tqdm bar when stdout is a terminal, else a PlainProgress; the same calls work on both.
     tqdm_kw (dynamic_ncols, ...) go to tqdm only."""
-    if os.environ.get(ENV_MODE, "").strip().lower() == "off":
+    if _env_get(ENV_MODE) == "off":
         disable = True
     if plain_wanted():
         return PlainProgress(iterable, total=total, initial=initial, desc=desc, unit=unit, disable=disable)

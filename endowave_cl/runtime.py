@@ -69,14 +69,16 @@ class KernelBuildError(RuntimeError):
 
 
 def oclgrind_mode() -> bool:
-    return os.environ.get(ENV_OCLGRIND, "").strip().lower() in ("1", "true", "yes", "on")
+    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
+    return env.flag(ENV_OCLGRIND)
 
 
 def kernel_dir() -> Path:
     """Folder holding the *.cl / *.h kernel sources."""
-    env = os.environ.get(ENV_KERNEL_DIR)
-    if env:
-        return Path(env)
+    from . import env
+    kdir = env.get(ENV_KERNEL_DIR)
+    if kdir:
+        return Path(kdir)
     here = Path(__file__).resolve().parent
     for cand in (here / "cl", here.parent / "cl"):  # installed, then source tree
         if cand.is_dir() and any(cand.glob("*.cl")):
@@ -184,7 +186,8 @@ def choose_device(spec: Optional[str] = None, entries: Optional[List[DeviceEntry
     """Pick a device; see the module docstring for the order."""
     entries = entries if entries is not None else list_devices()
     if spec is None or not str(spec).strip():
-        spec = os.environ.get(ENV_DEVICE, "").strip() or None
+        from . import env
+        spec = env.get(ENV_DEVICE)
     if spec is None and oclgrind_mode():
         spec = "oclgrind"
     if spec is not None:
@@ -223,9 +226,10 @@ def choose_device(spec: Optional[str] = None, entries: Optional[List[DeviceEntry
 
 
 def _default_cache_dir() -> Path:
-    env = os.environ.get(ENV_CACHE_DIR)
-    if env:
-        return Path(env)
+    from . import env
+    cache = env.get(ENV_CACHE_DIR)
+    if cache:
+        return Path(cache)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "endowave-cl" / "programs"
 
@@ -390,7 +394,8 @@ class Runtime:
         self.queue = cl.CommandQueue(self.ctx)
         self.kdir = kernel_dir()
         if disk_cache is None:
-            disk_cache = not os.environ.get(ENV_NO_DISK_CACHE) and not entry.is_oclgrind
+            from . import env
+            disk_cache = not env.flag(ENV_NO_DISK_CACHE) and not entry.is_oclgrind
         self.disk_cache = disk_cache
         self._programs: Dict[Tuple[str, str], object] = {}
         self._kernels: Dict[Tuple[str, str, str], object] = {}

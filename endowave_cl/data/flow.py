@@ -187,9 +187,10 @@ def training_pairs(scene):
 
 # ---------------------------------------------------------------------------------------------
 def default_cache_root() -> Path:
-    env = os.environ.get("ENDOWAVE_CL_CACHE")
-    if env:
-        return Path(env) / "flow"
+    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
+    cache = env.get("ENDOWAVE_CL_CACHE")
+    if cache:
+        return Path(cache) / "flow"
     xdg = os.environ.get("XDG_CACHE_HOME")
     base = Path(xdg) if xdg else Path.home() / ".cache"
     return base / "endowave-cl" / "flow"

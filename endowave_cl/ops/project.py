@@ -6,7 +6,6 @@ endowave_cl/reference/project.py.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Dict, Optional
 
@@ -38,16 +37,13 @@ def project_lanes(rt) -> int:
     $ENDOWAVE_PROJECT_VARIANT / $ENDOWAVE_PROJECT_VW force a variant / lane count; else devices
     that report a SIMT width run the scalar kernels and the others the vector ones at the
     rasterizer's lane count (scalar where the rasterizer runs scalar)."""
-    v = os.environ.get(ENV_VARIANT, "").strip().lower()
-    if v and v not in VARIANTS:
-        raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
-    w = os.environ.get(ENV_VEC_WIDTH, "").strip()
-    if w and int(w) not in VEC_WIDTHS:
-        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected one of {VEC_WIDTHS}")
+    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
+    v = env.get(ENV_VARIANT)
+    w = env.get(ENV_VEC_WIDTH)
     if v == "scalar":
         return 0
     if w:
-        return int(w)
+        return w
     from .rasterize import VEC_WIDTH, raster_choice, simt_device
     if v != "vector" and simt_device(rt):
         return 0

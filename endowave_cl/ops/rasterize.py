@@ -8,7 +8,6 @@ same values.
 """
 from __future__ import annotations
 
-import os
 import sys
 from dataclasses import dataclass
 from typing import Dict
@@ -59,13 +58,9 @@ class RasterChoice:
 
 
 def _forced():
-    v = os.environ.get(ENV_VARIANT, "").strip().lower()
-    if v and v not in VARIANTS:
-        raise ValueError(f"{ENV_VARIANT}={v!r}: expected one of {VARIANTS}")
-    w = os.environ.get(ENV_VEC_WIDTH, "").strip()
-    if w and int(w) not in (2, 4, 8, 16):
-        raise ValueError(f"{ENV_VEC_WIDTH}={w}: expected 2, 4, 8 or 16")
-    return v or None, int(w) if w else None, os.environ.get(ENV_VEC_BLOCK_W, "").strip() or None
+    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
+    bw = env.get(ENV_VEC_BLOCK_W)
+    return env.get(ENV_VARIANT), env.get(ENV_VEC_WIDTH), None if bw is None else str(bw)
 
 
 def raster_choice(rt, C: int = 6) -> RasterChoice:
@@ -77,8 +72,8 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
     forced_v, forced_w, forced_bw = _forced()
-    key = ("raster_choice", int(C), forced_v, forced_w, forced_bw, os.environ.get(ENV_CACHE_DIR),
-           os.environ.get(ENV_PLANT))
+    from .. import env
+    key = ("raster_choice", int(C), forced_v, forced_w, forced_bw, env.raw(ENV_CACHE_DIR), env.raw(ENV_PLANT))
     ch = rt.cache.get(key)
     if ch is None:
         ch, notes, failed = explain_choice(rt, C)
@@ -156,9 +151,10 @@ def vec_width() -> int:
 def vec_block(vw: int = None) -> tuple:
     """(BW, BH): a work-item's pixel block in the vector variant with vw lanes, BW * BH = vw."""
     vw = vw or vec_width()
-    bw = int(os.environ.get(ENV_VEC_BLOCK_W, "") or min(VEC_BLOCK_W, vw))
+    from .. import env
+    bw = env.get(ENV_VEC_BLOCK_W) or min(VEC_BLOCK_W, vw)
     if vw % bw or bw > TILE:
-        raise ValueError(f"{ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
+        raise env.EnvError(f"environment variable {ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
     bh = vw // bw
     if TILE % bh:
         raise ValueError(f"block {bw} x {bh}: its {bh} rows must divide the tile's {TILE}")

@@ -15,7 +15,6 @@ Kernels: cl/select.cl.  Reference: endowave_cl/reference/select.py.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from typing import Dict, Optional
 
@@ -36,7 +35,8 @@ LIVE_SLACK = 0.99    # LIVE_SLACK in cl/select.cl: rows down to 0.99 x MARGINAL_
 
 def select_enabled() -> bool:
     """False when $ENDOWAVE_NO_SELECT asks training to render every Gaussian (the same results)."""
-    return os.environ.get(ENV_NO_SELECT, "").strip().lower() not in ("1", "true", "yes")
+    from .. import env
+    return not env.flag(ENV_NO_SELECT)
 
 
 def _options():
