@@ -15,6 +15,14 @@ report it"): two interpolations between the training frames around each test fra
   texture; bicubic sampling keeps more of it (on the pulling frames at 320x256: LPIPS 0.026 against
   0.039, +0.05 dB; docs/QUALITY.md finding 10).  The stronger of the two interpolators is the bar.
 
+- ``teacher``: the in-between teacher (train/between.py ``Teacher``): the target that training's
+  in-between steps fit at that time, built from the training pair around the test frame as the
+  default settings build it (three flow estimators fused by consistency, the frames pushed forward
+  along the fused flows and reverse-splatted, bicubic, along curved paths through the training frames
+  beyond the pair), with no model.  It is the strongest interpolator the project builds from the
+  training frames alone, so it is the bar a model's unseen times are held to.  Where the neighbours
+  are not a training pair with one camera it is ``dis_cubic``'s image.
+
 Neighbours are the nearest training frames before and after the test frame in time; at a sequence
 end only one exists, and every baseline is that frame.
 
@@ -33,9 +41,9 @@ import numpy as np
 
 from .errors import EndowaveError
 
-NAMES = ("mean", "dis", "dis_cubic")
+NAMES = ("mean", "dis", "dis_cubic", "teacher")
 LABELS = {"mean": "neighbour mean", "dis": "DIS flow interpolation",
-          "dis_cubic": "DIS flow interpolation, bicubic warps"}
+          "dis_cubic": "DIS flow interpolation, bicubic warps", "teacher": "in-between teacher (no model)"}
 
 # (scene path, width, height, train, test) -> {"lpips": bool, "frames": [per test frame dict]}
 _CACHE: Dict[tuple, dict] = {}
@@ -182,12 +190,26 @@ def dis_interpolations(image0: np.ndarray, image1: np.ndarray, a: float, method:
                                   sample_displaced(image1, -(1.0 - a) * f10, s), a) for s in samplers}
 
 
-def baseline_images(scene, k: int) -> Dict[str, np.ndarray]:
-    """{"mean": image, "dis": image, "dis_cubic": image} for test frame k of a loaded scene."""
+def teacher_for(scene, progress: bool = False):
+    """The in-between teacher of a loaded scene with the default settings (train/between.py
+    Teacher; its flows come from the on-disk flow cache or are estimated once)."""
+    from .train.between import Teacher
+    from .train.config import TrainConfig
+    return Teacher(scene, TrainConfig(), progress)
+
+
+def baseline_images(scene, k: int, teacher=None) -> Dict[str, np.ndarray]:
+    """{name: image} of every baseline (NAMES) for test frame k of a loaded scene.  teacher: the
+    scene's teacher_for (made here when None)."""
     i0, i1, a = neighbours(scene, k)
     im0, im1 = scene.frames[i0].image, scene.frames[i1].image
     dis = dis_interpolations(im0, im1, a, samplers=("linear", "cubic"))
-    return {"mean": mean_interpolation(im0, im1, a), "dis": dis["linear"], "dis_cubic": dis["cubic"]}
+    out = {"mean": mean_interpolation(im0, im1, a), "dis": dis["linear"], "dis_cubic": dis["cubic"]}
+    taught = None
+    if 0.0 < a < 1.0:
+        taught = (teacher if teacher is not None else teacher_for(scene)).image(i0, i1, a)
+    out["teacher"] = taught if taught is not None else out["dis_cubic"]
+    return out
 
 
 def _key(scene) -> tuple:
@@ -198,7 +220,7 @@ def _key(scene) -> tuple:
 
 def baseline_scores(scene, with_lpips: bool = False) -> List[dict]:
     """Per test frame (in scene.test_indices order): {"index", "neighbours": [i0, i1], "fraction",
-    "mean": scores, "dis": scores, "dis_cubic": scores}, scores as metrics.frame_scores gives them.  Cached in memory
+    "motion" (Teacher.motion of the neighbours), and each of NAMES: scores}, scores as metrics.frame_scores gives them.  Cached in memory
     per scene path, size and split; an entry without LPIPS is recomputed when LPIPS is asked for."""
     from .metrics import frame_scores
     key = _key(scene)
@@ -206,11 +228,12 @@ def baseline_scores(scene, with_lpips: bool = False) -> List[dict]:
     if hit is not None and (hit["lpips"] or not with_lpips):
         return hit["frames"]
     rows = []
+    teacher = teacher_for(scene)
     for k in scene.test_indices:
         f = scene.frames[k]
         i0, i1, a = neighbours(scene, k)
-        row = {"index": k, "neighbours": [i0, i1], "fraction": a}
-        for name, img in baseline_images(scene, k).items():
+        row = {"index": k, "neighbours": [i0, i1], "fraction": a, "motion": teacher.motion(i0, i1)}
+        for name, img in baseline_images(scene, k, teacher).items():
             row[name] = frame_scores(img, f.image, f.mask, with_lpips)
         rows.append(row)
     _CACHE[key] = {"lpips": with_lpips, "frames": rows}

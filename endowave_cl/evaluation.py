@@ -20,7 +20,7 @@ _FLOW_CACHE: Dict[tuple, dict] = {}
 
 
 def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
-                 with_baselines: bool = False) -> dict:
+                 with_baselines: bool = False, with_train_fit: bool = False) -> dict:
     """Test-frame metrics of device parameters: PSNR (masked form and whole-image form on masked
     images), SSIM, LPIPS-Alex (None when unavailable or not asked for) and render FPS (median of
     fps_runs renders after warm-up; None when fps_runs is 0), plus "per_frame" (each test frame's
@@ -35,12 +35,18 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     the model renders from each test frame to the next frame against the ground truth, beside
     DIS's error on the same pixels (see ``flow_references``); else "flow" is None.
 
-    with_baselines: also score the neighbour mean and the DIS flow interpolation on the same
-    frames with the same function (baselines.py; computed once per scene and process) and add
-    "baselines" {name: means}, "margin" (model minus the better baseline by whole-image PSNR:
+    with_baselines: also score the interpolation baselines (the neighbour mean, the DIS flow
+    interpolation with bilinear and bicubic warps, and the in-between teacher: baselines.py;
+    computed once per scene and process) on the same frames with the same function and add
+    "baselines" {name: means}, "margin" (model minus the best baseline by whole-image PSNR:
     psnr, psnr_masked and ssim as model - baseline, lpips as baseline - model, so positive = the
-    model is better everywhere) and each baseline's figures in "per_frame".  Off by default: the
-    trainer's periodic evaluation calls this without it."""
+    model is better everywhere), "margin_teacher" (the same over the teacher) and each baseline's
+    figures in "per_frame", with "motion": the mean flow magnitude (px) between the frame's two
+    neighbours, where they are a training pair.  Off by default: the trainer's periodic evaluation
+    calls this without it.
+
+    with_train_fit: also "train_fit", the mean whole-image PSNR and masked PSNR of the model at
+    its training frames (how closely it fits what it saw, beside what it shows in between)."""
     from .lpips import lpips_available
     from .metrics import frame_scores
     from .render import render
@@ -64,19 +70,38 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     fps = None
     if fps_runs > 0:
         fps = _render_fps(rt, params, scene.frames[scene.test_indices[0]], fps_runs)
-    m.update({"fps": fps, "test_frames": len(scene.test_indices), "device": rt.name})
+    m.update({"fps": fps, "test_frames": len(scene.test_indices), "device": rt.name,
+              "split": getattr(scene, "split", "test")})
     m["flow"] = _flow_summary(rows) if flow_refs else None
     m["depth"] = _depth_summary(rows, scene.world_scale)
     if with_baselines:
         from .baselines import NAMES, baseline_scores, summarise
         base = baseline_scores(scene, use_lpips)
         for row, b in zip(rows, base):
-            row.update({"neighbours": b["neighbours"], "fraction": b["fraction"]})
+            row.update({"neighbours": b["neighbours"], "fraction": b["fraction"], "motion": b.get("motion")})
             row.update({name: b[name] for name in NAMES})
         m["baselines"] = {name: summarise(base, name) for name in NAMES}
         m["margin"] = margin(m, m["baselines"])
+        m["margin_teacher"] = margin(m, {"teacher": m["baselines"]["teacher"]})
+    if with_train_fit:
+        m["train_fit"] = train_fit(rt, params, scene)
     m["per_frame"] = rows
     return m
+
+
+def train_fit(rt, params, scene) -> dict:
+    """{"psnr", "psnr_masked", "frames"}: the model's mean whole-image and masked PSNR at the
+    scene's training frames."""
+    from .metrics import psnr, psnr_masked
+    from .render import render
+    vals, masked = [], []
+    for k in scene.train_indices:
+        f = scene.frames[k]
+        img = np.clip(render(rt, params, f.camera, f.time, select=True).host()["image"], 0, 1)
+        m = np.ones(f.image.shape[:2], np.float32) if f.mask is None else f.mask
+        vals.append(psnr(img * m[..., None], f.image * m[..., None]))
+        masked.append(psnr_masked(img, f.image, m))
+    return {"psnr": float(np.mean(vals)), "psnr_masked": float(np.mean(masked)), "frames": len(vals)}
 
 
 def margin(model: dict, baselines: dict) -> dict:
@@ -198,8 +223,8 @@ def per_frame_plot_png(m: dict, title: str = "") -> bytes:
     idx = [r["index"] for r in rows]
     fig = Figure(figsize=(7.0, 3.6), dpi=110)
     ax = fig.add_subplot(1, 1, 1)
-    curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in (("mean", "s--"), ("dis", "^--"),
-                                                                                         ("dis_cubic", "v--"))
+    curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in
+                                           (("mean", "s--"), ("dis", "^--"), ("dis_cubic", "v--"), ("teacher", "d--"))
                                            if name in rows[0]]
     for key, label, style in curves:
         vals = [r[key]["psnr"] for r in rows]

@@ -20,7 +20,7 @@ class LoadedRun:
 
 
 def load_run(run_dir, scene_override=None) -> LoadedRun:
-    from .data.scene import load_scene
+    from .data.scene import apply_split, load_scene
     import sys
     from .train.config import TrainConfig
     from .checkpoint import load_newest_good_checkpoint
@@ -46,7 +46,8 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     if ck is None:
         raise EndowaveError(f"{run}: no checkpoint_*.npz yet")
     # in the units the run was trained in (runs from before scene units: the files' own)
-    scene = load_scene(scene_path, downscale=cfg.downscale, world_scale=run_world_scale(state, ck))
+    scene = apply_split(load_scene(scene_path, downscale=cfg.downscale, world_scale=run_world_scale(state, ck)),
+                        cfg.split)
     return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
 
 

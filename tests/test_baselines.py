@@ -36,9 +36,10 @@ def _psnr(a, b):
 def _scene(images, train, test, masks=None, times=None):
     n = len(images)
     times = times or [i / (n - 1) for i in range(n)]
-    frames = [SimpleNamespace(time=times[i], image=images[i], mask=None if masks is None else masks[i],
-                              name=f"{i:06d}") for i in range(n)]
     h, w = images[0].shape[:2]
+    camera = SimpleNamespace(width=w, height=h, fx=1.0, fy=1.0, cx=0.0, cy=0.0, viewmat=np.eye(4))   # one viewpoint
+    frames = [SimpleNamespace(time=times[i], image=images[i], mask=None if masks is None else masks[i],
+                              name=f"{i:06d}", camera=camera) for i in range(n)]
     return SimpleNamespace(path=f"/nonexistent/stub-{id(frames)}", frames=frames, train_indices=train,
                            test_indices=test, width=w, height=h)
 
@@ -136,8 +137,8 @@ def test_eval_baselines_tool(tmp_path):
     r = _tool(scene, "--no-lpips", "--per-frame", "--json", tmp_path / "b.json")
     assert r.returncode == 0, r.stderr
     out = json.loads((tmp_path / "b.json").read_text())
-    assert set(out["baselines"]) == {"mean", "dis", "dis_cubic"} and out["flow"]["frames"] == 2
-    for line in ("host: ", "neighbour mean", "DIS flow interpolation", "gt_flow: DIS"):
+    assert set(out["baselines"]) == {"mean", "dis", "dis_cubic", "teacher"} and out["flow"]["frames"] == 2
+    for line in ("host: ", "neighbour mean", "DIS flow interpolation", "in-between teacher", "gt_flow: DIS"):
         assert line in r.stdout, r.stdout
     assert f"{out['baselines']['dis']['psnr']:7.2f}" in r.stdout
     r = _tool(tmp_path / "nowhere")

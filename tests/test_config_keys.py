@@ -166,6 +166,40 @@ def _downscale(scene, rt, tmp_path):
     assert widths == [scene.width, scene.width // 2]
 
 
+def _split(scene, rt, tmp_path):
+    """"validation" holds the validation frames out of training and scores them; the run loader
+    applies the run's split."""
+    from endowave_cl.checkpoint import checkpoint_path, save_checkpoint
+    from endowave_cl.data.scene import validation_indices
+    from endowave_cl.run_io import load_run
+    got = {}
+    for run, value in (("a", "test"), ("b", "validation")):
+        d = tmp_path / run
+        d.mkdir()
+        cfg = TrainConfig(split=value)
+        (d / "config.json").write_text(json.dumps({**cfg.to_dict(), "scene": str(scene.path)}))
+        save_checkpoint(checkpoint_path(d, 1), Gaussians.random(3), None, 1, cfg.to_dict())
+        got[value] = load_run(d).scene
+    val = validation_indices(len(scene.frames))
+    assert val and got["validation"].test_indices == val
+    assert got["test"].test_indices == scene.test_indices
+    assert set(got["validation"].train_indices) == set(scene.train_indices) - set(val)
+    with pytest.raises(EndowaveError, match="key 'split' must be one of"):
+        load_config(None, {"split": "train"})
+
+
+def _recipe(scene, rt, tmp_path):
+    """A recipe sets the values it names before the file and the overrides, and is recorded."""
+    from endowave_cl.train.config import RECIPES
+    cfg = load_config(None, {"recipe": "paper"})
+    assert cfg.recipe == "paper" and cfg.between_prob == 0.0 and cfg.iterations == 30000
+    assert all(getattr(cfg, k) == v for k, v in RECIPES["paper"].items())
+    assert load_config(None, {"recipe": "paper", "between_prob": "0.25"}).between_prob == 0.25
+    assert load_config(None).between_prob == TrainConfig().between_prob
+    with pytest.raises(EndowaveError, match="unknown recipe 'fast'"):
+        load_config(None, {"recipe": "fast"})
+
+
 def _init_points(scene, rt, tmp_path):
     assert len(_trainer(scene, rt, tmp_path / "a").params["means"]) == QUICK["init_points"]
     assert len(_trainer(scene, rt, tmp_path / "b", init_points=80).params["means"]) == 80
@@ -930,6 +964,8 @@ CHECKS = {
     "eval_every": _loop_effect("eval_every", 2, _eval_every),
     "checkpoint_every": _loop_effect("checkpoint_every", 3, _checkpoint_every),
     "downscale": _downscale,
+    "split": _split,
+    "recipe": _recipe,
     "init_points": _init_points,
     "init_time_scale": _init_time_scale,
     "init_velocity": _init_velocity,

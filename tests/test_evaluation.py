@@ -178,20 +178,22 @@ def test_eval_command_baselines_margin_flow_and_figures(rt, scene_dir, tmp_path,
     assert m["step"] == 7 and (m["lpips"] is None) != lpips_available()
     # the baselines in eval.json are the test frames' baselines, scored like the model
     scene = load_scene(scene_dir)
-    for name in ("mean", "dis", "dis_cubic"):
+    for name in ("mean", "dis", "dis_cubic", "teacher"):
         per = [frame_scores(baseline_images(scene, k)[name], scene.frames[k].image, scene.frames[k].mask)
                for k in scene.test_indices]
         assert m["baselines"][name]["psnr"] == pytest.approx(np.mean([p["psnr"] for p in per]), abs=1e-6)
         assert m["baselines"][name]["psnr_masked"] == pytest.approx(np.mean([p["psnr_masked"] for p in per]), abs=1e-6)
         assert m["baselines"][name]["ssim"] == pytest.approx(np.mean([p["ssim"] for p in per]), abs=1e-6)
     assert m["per_frame"][0]["neighbours"] == [0, 2] and m["per_frame"][0]["fraction"] == 0.5
-    best = max(("mean", "dis", "dis_cubic"), key=lambda n: m["baselines"][n]["psnr"])
+    best = max(("mean", "dis", "dis_cubic", "teacher"), key=lambda n: m["baselines"][n]["psnr"])
     assert m["margin"]["over"] == best
     assert m["margin"]["psnr"] == pytest.approx(m["psnr"] - m["baselines"][best]["psnr"])
     assert m["margin"]["psnr_masked"] == pytest.approx(m["psnr_masked"] - m["baselines"][best]["psnr_masked"])
+    assert m["margin_teacher"]["psnr"] == pytest.approx(m["psnr"] - m["baselines"]["teacher"]["psnr"])
+    assert m["per_frame"][0]["motion"] > 0 and m["train_fit"]["frames"] == len(scene.train_indices)
     # the printed table
-    for text in ("neighbour mean", "DIS flow interpolation", "margin over the", "end-point error model",
-                 "depth vs the depth maps"):
+    for text in ("neighbour mean", "DIS flow interpolation", "in-between teacher", "margin over the",
+                 "end-point error model", "depth vs the depth maps", "training frames: PSNR"):
         assert text in out, out
     assert f"{m['margin']['psnr']:+.2f} dB" in out
     # the figures: a plot, and the worst frame as ground truth | render | error at full resolution
@@ -216,3 +218,57 @@ def test_eval_command_without_baselines_and_bad_input(rt, scene_dir, tmp_path, c
     assert main(["eval", str(run), "--fps-runs", "-1"]) == 1
     err = capsys.readouterr().err
     assert "--fps-runs must be >= 0" in err and len(err.strip().splitlines()) == 1
+
+
+def test_validation_split_never_trains_or_scores_a_test_frame(scene_dir):
+    from endowave_cl.data.scene import apply_split, load_scene, validation_indices
+    from endowave_cl.errors import DataError
+    for n in (2, 6, 7, 12, 63, 129):
+        val = validation_indices(n)
+        test = {i for i in range(n) if (i - 1) % 8 == 0}
+        assert all((i - 5) % 8 == 0 and 0 < i < n - 1 for i in val) and not set(val) & test
+        # like a test frame, each has its two neighbours among the training frames
+        train = set(range(n)) - test - set(val)
+        assert all({i - 1, i + 1} <= train for i in val)
+    assert validation_indices(63) == [5, 13, 21, 29, 37, 45, 53, 61]
+    scene = apply_split(load_scene(scene_dir), "validation")
+    assert scene.test_indices == [5] and scene.split == "validation"
+    assert set(scene.train_indices) == {0, 2, 3, 4, 6, 7, 8, 10, 11}
+    assert "1 validation" in scene.summary()
+    with pytest.raises(DataError, match="split must be one of"):
+        apply_split(load_scene(scene_dir), "train")
+
+
+def test_teacher_is_the_static_in_between_target(scene_dir):
+    """The teacher baseline is what an in-between step with the default keys trains on at the test
+    frame's time (the same between_target call the trainer makes, the model's part off), and it
+    interpolates the synthetic motion better than the neighbour mean."""
+    from endowave_cl.baselines import baseline_images, teacher_for
+    from endowave_cl.data.flow import flow_for_scene
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.metrics import psnr
+    from endowave_cl.train.between import between_target, consistent_flows, extra_pairs, pair_bend, usable_pairs
+    from endowave_cl.train.config import TrainConfig, between_flow_methods
+    scene, c = load_scene(scene_dir), TrainConfig()
+    own = dict(flow_for_scene(scene, method=c.flow_method, progress=False, max_pixels=c.flow_max_pixels))
+    others = [dict(flow_for_scene(scene, method=m, progress=False, max_pixels=c.flow_max_pixels))
+              for m in between_flow_methods(c)]
+    pairs = usable_pairs(scene, own)
+    index = [p.src for p in pairs].index(0)
+    pair = pairs[index]
+    assert (pair.src, pair.dst) == (0, 2)
+
+    def sources(p):
+        return [p, *extra_pairs(others, p)]
+    bend = pair_bend(scene, pairs, index, sources, lambda i: consistent_flows(sources(pairs[i])))
+    want = between_target(scene, pair, 0.5, c.between_two_flow, c.between_sampler, extra_pairs(others, pair),
+                          fuse=c.between_fuse, flow_splat=c.between_flow_splat, splat=c.between_splat,
+                          push=c.between_push, bend=bend)[0]
+    teacher = teacher_for(scene)
+    got = teacher.image(0, 2, 0.5)
+    np.testing.assert_array_equal(got, np.clip(want, 0, 1))
+    assert teacher.image(0, 3, 0.5) is None                      # not a training pair
+    images = baseline_images(scene, 1, teacher)
+    np.testing.assert_array_equal(images["teacher"], got)
+    gt = scene.frames[1].image
+    assert psnr(images["teacher"], gt) > psnr(images["mean"], gt) + 3

@@ -1,14 +1,15 @@
 #!/usr/bin/env python
 """The baselines a 4D model must beat, on a scene's test frames, without any model: the mean of
-the two neighbouring training frames and a DIS optical-flow interpolation between them, with
-bilinear and with bicubic warps
-(endowave_cl/baselines.py), scored exactly as `endowave-cl eval` scores a model (PSNR in both
+the two neighbouring training frames, a DIS optical-flow interpolation between them with
+bilinear and with bicubic warps, and the in-between teacher (the target training's in-between steps
+fit at that time, built from the training frames alone; endowave_cl/baselines.py), scored exactly as `endowave-cl eval` scores a model (PSNR in both
 forms, SSIM, LPIPS-Alex when its weights are installed).  On a scene with gt_flow/ it also prints
 DIS's end-point error from each test frame to the next (the reference `eval` puts beside the
 model's rendered flow).
 
     python tools/eval_baselines.py ../shared/data/endonerf/pulling_soft_tissues --downscale 2
     python tools/eval_baselines.py SCENE --per-frame --json out.json
+    python tools/eval_baselines.py SCENE --validation     # the validation frames, never a test frame
 """
 from __future__ import annotations
 
@@ -39,6 +40,9 @@ def main(argv=None) -> int:
     ap.add_argument("scene", help="scene folder in the EndoNeRF layout")
     ap.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (default 1)")
     ap.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
+    ap.add_argument("--validation", action="store_true",
+                    help="score the validation frames ((i - 5) %% 8 == 0, held out of the training frames) "
+                         "instead of the test frames")
     ap.add_argument("--per-frame", action="store_true", help="also print each test frame's figures")
     ap.add_argument("--json", help="write the figures to this file as JSON (atomically)")
     args = ap.parse_args(argv)
@@ -47,13 +51,14 @@ def main(argv=None) -> int:
 
     from endowave_cl.atomic import write_bytes_atomic
     from endowave_cl.baselines import LABELS, NAMES, baseline_scores, summarise
-    from endowave_cl.data.scene import load_scene
+    from endowave_cl.data.scene import apply_split, load_scene
     from endowave_cl.errors import EndowaveError
     from endowave_cl.evaluation import flow_references
     from endowave_cl.lpips import lpips_available
 
     try:
-        scene = load_scene(args.scene, downscale=args.downscale)
+        scene = apply_split(load_scene(args.scene, downscale=args.downscale),
+                            "validation" if args.validation else "test")
         if not scene.test_indices:
             raise EndowaveError(f"{args.scene}: the scene has no test frame")
         use_lpips = not args.no_lpips and lpips_available()
@@ -68,7 +73,7 @@ def main(argv=None) -> int:
     print(f"host: {_cpu_name()}, {os.cpu_count()} CPUs, OpenCV {cv2.__version__}, Python {platform.python_version()}")
     print(f"scene: {args.scene}, {scene.summary()}")
     lp_note = "" if use_lpips else " (n/a: --no-lpips or weights not installed)"
-    print(f"{len(rows)} test frames; PSNR = whole image of masked images, masked = tissue pixels only; "
+    print(f"{len(rows)} {scene.split} frames; PSNR = whole image of masked images, masked = tissue pixels only; "
           f"LPIPS-Alex{lp_note}; {seconds:.1f} s")
     lp = lambda v: "n/a" if v is None else f"{v:.4f}"
     lw = max(len(LABELS[n]) for n in NAMES)

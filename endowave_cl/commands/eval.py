@@ -1,8 +1,10 @@
 """Evaluate a trained run on its test frames: PSNR (masked form and whole-image form on masked
 images), SSIM, LPIPS-Alex (with the [metrics] extra; else n/a) and rendering FPS (render alone,
-after warm-up), beside three baselines scored the same way on the same frames: the mean of the
-neighbouring training frames and a DIS optical-flow interpolation between them with bilinear and
-with bicubic warps, with the model's margin over the best one.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
+after warm-up), beside four baselines scored the same way on the same frames: the mean of the
+neighbouring training frames, a DIS optical-flow interpolation between them with bilinear and
+with bicubic warps, and the in-between teacher (the target training's in-between steps fit there,
+built from the training frames alone, with no model), with the model's margin over the best one
+and over the teacher.  On a scene with gt_flow/ (endowave-cl synth) it also reports the
 end-point error of the flow the model renders, beside DIS's on the same pixels; on a scene with
 depth maps, the error of the rendered depth on the test frames' tissue (in the depth files' units
 and relative to the depth).
@@ -23,7 +25,7 @@ def add_arguments(p) -> None:
     p.add_argument("--fps-runs", type=int, default=10,
                    help="timed renders for the FPS figure, >= 0 (default 10; 0: skip, fps is null in eval.json)")
     p.add_argument("--no-baselines", action="store_true",
-                   help="skip the neighbour-mean and DIS-interpolation baselines (bilinear and bicubic warps)")
+                   help="skip the interpolation baselines (neighbour mean, DIS with bilinear and bicubic warps, in-between teacher)")
 
 
 def _lp(v) -> str:
@@ -33,15 +35,20 @@ def _lp(v) -> str:
 def table(m: dict) -> str:
     """The printed comparison: one line per renderer, then the margin and, with gt_flow, the flow."""
     from ..baselines import LABELS
-    lines = [f"{'on the test frames':<26} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}"]
+    lines = [f"{'on the ' + m.get('split', 'test') + ' frames':<38} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}"]
     entries = [("model", m)] + [(LABELS[n], b) for n, b in m.get("baselines", {}).items()]
     for label, e in entries:
-        lines.append(f"{label:<26} {e['psnr']:7.2f} {e['psnr_masked']:7.2f} {e['ssim']:7.4f} {_lp(e['lpips']):>7}")
+        lines.append(f"{label:<38} {e['psnr']:7.2f} {e['psnr_masked']:7.2f} {e['ssim']:7.4f} {_lp(e['lpips']):>7}")
     mg = m.get("margin")
     if mg is not None:
         lp = "" if mg["lpips"] is None else f", LPIPS {mg['lpips']:+.4f}"
         lines.append(f"margin over the {LABELS[mg['over']]}: {mg['psnr']:+.2f} dB (masked {mg['psnr_masked']:+.2f} "
                      f"dB), SSIM {mg['ssim']:+.4f}{lp}  (positive = the model is better)")
+    mt = m.get("margin_teacher")
+    if mt is not None and mg is not None and mg["over"] != "teacher":
+        lp = "" if mt["lpips"] is None else f", LPIPS {mt['lpips']:+.4f}"
+        lines.append(f"margin over the {LABELS['teacher']}: {mt['psnr']:+.2f} dB (masked {mt['psnr_masked']:+.2f} "
+                     f"dB), SSIM {mt['ssim']:+.4f}{lp}")
     fl = m.get("flow")
     if fl is not None:
         lines.append(f"flow to the next frame vs gt_flow ({fl['frames']} test frames, {fl['pixels']} tissue pixels): "
@@ -52,6 +59,9 @@ def table(m: dict) -> str:
     if dp is not None:
         lines.append(f"depth vs the depth maps ({dp['frames']} test frames, {dp['pixels']} tissue pixels): mean "
                      f"absolute error {dp['mae']:.4g} (the depth files' units), {100 * dp['relative']:.2f}% of the depth")
+    tf = m.get("train_fit")
+    if tf is not None:
+        lines.append(f"model at its {tf['frames']} training frames: PSNR {tf['psnr']:.2f} dB (masked {tf['psnr_masked']:.2f} dB)")
     lp_note = "" if m["lpips"] is not None else "  (LPIPS n/a: install the [metrics] extra)"
     lines.append("PSNR: whole image of masked images; masked: tissue pixels only; LPIPS-Alex" + lp_note)
     return "\n".join(lines)
@@ -74,14 +84,14 @@ def run(args) -> int:
                             f"1, {1 + TEST_EVERY}, {1 + 2 * TEST_EVERY}, ...: eval needs at least 2 frames)")
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
-    m = evaluate_run(rt, params, r.scene, args.fps_runs, with_baselines=not args.no_baselines)
+    m = evaluate_run(rt, params, r.scene, args.fps_runs, with_baselines=not args.no_baselines, with_train_fit=True)
     m.update({"step": r.step, "gaussians": len(r.gaussians), "checkpoint": str(r.checkpoint),
               "scene": str(r.scene.path), "size": [r.scene.width, r.scene.height]})
     title = (f"{Path(r.scene.path).name} {r.scene.width}x{r.scene.height}, step {r.step}, "
              f"{len(r.gaussians)} Gaussians")
     m.update(write_figures(args.run, rt, params, r.scene, m, title))
     fps = "n/a" if m["fps"] is None else f"{m['fps']:.1f}"
-    print(f"{m['test_frames']} test frames of {title}; render FPS {fps} on {rt.name}")
+    print(f"{m['test_frames']} {m['split']} frames of {title}; render FPS {fps} on {rt.name}")
     print(table(m))
     path = Path(args.run) / "eval.json"
     write_json_atomic(path, m)      # strict JSON: PSNR inf (a frame rendered exactly) and NaN become null

@@ -22,11 +22,15 @@ DEMO_MAX_GAUSSIANS = 40000       # densification cap for the demo (~2 per pixel)
 
 
 def add_arguments(p) -> None:
-    from ..train.config import BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME
+    from ..train.config import BASE_ITERATIONS, RECIPES, STEPS_PER_TRAINING_FRAME
     p.add_argument("scene", nargs="?", help="scene folder in the EndoNeRF layout, or a video file (ingested into "
                                             "RUN/scene with `endowave-cl ingest`'s defaults; omit with --demo)")
     p.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
     p.add_argument("--demo", action="store_true", help="train on the built-in synthetic scene (generated into RUN/demo_scene)")
+    p.add_argument("--recipe", choices=tuple(RECIPES),
+                   help="the settings to start from: 'default' (this version's), or 'paper' (EndoWave as published: "
+                        "30000 steps, 3DGS/4DGS schedule, SH degree 3, opacity reset, no in-between steps); "
+                        "--config and --set apply on top")
     p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
     p.add_argument("--iterations", type=int,
                    help=f"number of training steps (default: {STEPS_PER_TRAINING_FRAME} per training frame, at "
@@ -35,6 +39,9 @@ def add_arguments(p) -> None:
                    help="time budget: plan the steps, densification and learning-rate decay to end "
                         "training within this many minutes on this device (prints the plan)")
     p.add_argument("--downscale", type=float, help="image downscale factor (2 = half size)")
+    p.add_argument("--validation", action="store_true",
+                   help="hold out the validation frames ((i - 5) %% 8 == 0) as well and score those instead of "
+                        "the test frames: for choosing settings without reading a test frame")
     p.add_argument("--no-flow", action="store_true", help="turn the optical-flow loss off")
     p.add_argument("--no-wavelet", action="store_true", help="turn the rational-wavelet loss off")
     p.add_argument("--no-depth", action="store_true", help="turn the depth loss off")
@@ -54,7 +61,7 @@ def build_config(args):
             raise EndowaveError(f"--set expects KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         overrides[k.strip()] = v.strip()
-    cfg = load_config(args.config, overrides)
+    cfg = load_config(args.config, overrides, getattr(args, "recipe", None))
     if args.iterations is not None:
         if args.iterations < 1:
             raise EndowaveError(f"--iterations must be at least 1, got {args.iterations}")
@@ -73,6 +80,8 @@ def build_config(args):
         if not args.minutes > 0:
             raise EndowaveError(f"--minutes must be > 0, got {args.minutes}")
         cfg.minutes = args.minutes
+    if getattr(args, "validation", False):
+        cfg.split = "validation"
     cfg.use_flow &= not args.no_flow
     cfg.use_wavelet &= not args.no_wavelet
     cfg.use_depth &= not args.no_depth
@@ -138,7 +147,7 @@ def ingest_video_into_run(video: Path, out: Path, quiet: bool = False) -> Path:
 
 
 def run(args) -> int:
-    from ..data.scene import load_scene
+    from ..data.scene import apply_split, load_scene
     from ..errors import EndowaveError
     from ..runtime import get_runtime
     from ..train.trainer import Trainer
@@ -163,7 +172,7 @@ def run(args) -> int:
         make_synthetic_scene(scene_path, width=w, height=h, frames=n, seed=0, force=True)
     # load and check everything before touching the run folder
     check_downscaled_size(scene_path, cfg.downscale)
-    scene = load_scene(scene_path, downscale=cfg.downscale, use_depth=cfg.use_depth)
+    scene = apply_split(load_scene(scene_path, downscale=cfg.downscale, use_depth=cfg.use_depth), cfg.split)
     print(f"scene {scene_path}: {scene.summary()}")
     if not scene.test_indices or not scene.train_indices:
         raise EndowaveError(f"{scene_path}: {len(scene.frames)} frame(s) give {len(scene.train_indices)} "
@@ -191,6 +200,6 @@ def run(args) -> int:
           f"(density control up to {cfg.max_gaussians}, gradient threshold {cfg.densify_grad_threshold:.3g}), "
           f"colour SH degree {cfg.sh_degree}{why}")
     m = trainer.train(progress=not args.quiet)
-    print(f"final test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
+    print(f"final {scene.split} PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
           f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s; run saved in {out}")
     return 0

@@ -32,6 +32,13 @@ from .llff import HWF_LAYOUTS, intrinsics_from_hwf, llff_to_viewmat, read_poses_
 DEFAULT_DEPTH_PERCENTILES = (3.0, 99.8)
 # Every TEST_EVERY-th frame starting at frame 1 is a test frame: (i - 1) % 8 == 0.
 TEST_EVERY = 8
+# The validation split (for choosing settings without reading a test frame): the training frames
+# at VALIDATION_OFFSET, midway between two test frames, at the test frames' spacing:
+# (i - 5) % 8 == 0.  Like a test frame, each has training frames at i - 1 and i + 1.
+VALIDATION_OFFSET = 5
+# what a run is trained on and scored at (TrainConfig.split): "test" trains on every non-test frame
+# and scores the test frames; "validation" also holds the validation frames out and scores them
+SPLITS = ("test", "validation")
 # camera centres this close (relative to the far bound) count as one viewpoint (Scene.one_viewpoint)
 VIEWPOINT_TOL = 1e-6
 # A downscaled mask pixel counts as tissue only if all full-size pixels under it were tissue
@@ -78,6 +85,7 @@ class Scene:
     hwf_layout: str = "hwf"
     info: dict = field(default_factory=dict)   # scene.json content
     world_scale: float = 1.0       # scene units per file unit (depth after depth_scale, pose translations, bounds)
+    split: str = "test"            # which frames test_indices holds (apply_split): "test" or "validation"
 
     def summary(self) -> str:
         """One line: what was found and what the trainer will do with it."""
@@ -89,7 +97,7 @@ class Scene:
         parts.append("masks" if self.has_masks else "no masks")
         effects = ["depth loss " + ("on" if self.has_depth else "off")]
         effects.append("tool pixels excluded" if self.has_masks else "every pixel supervised")
-        split = f"{len(self.train_indices)} train / {len(self.test_indices)} test"
+        split = f"{len(self.train_indices)} train / {len(self.test_indices)} {self.split}"
         return (f"{', '.join(parts)}: {', '.join(effects)}; {split}; scene units = file units x "
                 f"{self.world_scale:.4g}")
 
@@ -123,6 +131,28 @@ def split_indices(n: int, test_every: int = TEST_EVERY):
     test = [i for i in range(n) if (i - 1) % test_every == 0]
     train = [i for i in range(n) if (i - 1) % test_every != 0]
     return train, test
+
+
+def validation_indices(n: int, test_every: int = TEST_EVERY) -> List[int]:
+    """The validation frames of an n-frame sequence: (i - VALIDATION_OFFSET) % test_every == 0,
+    never a test frame, never the first or last frame (each has a neighbour on both sides)."""
+    test = set(split_indices(n, test_every)[1])
+    return [i for i in range(1, n - 1) if (i - VALIDATION_OFFSET) % test_every == 0 and i not in test]
+
+
+def apply_split(scene: "Scene", split: str) -> "Scene":
+    """The scene as a run with this split trains and scores it (SPLITS), in place: "test" leaves it
+    as loaded; "validation" moves the validation frames out of the training frames and makes them
+    the scored frames, so that nothing trained or scored is a test frame.  Returns the scene."""
+    if split not in SPLITS:
+        raise DataError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    if split == "validation":
+        val = validation_indices(len(scene.frames))
+        held = set(val)
+        scene.train_indices = [i for i in scene.train_indices if i not in held]
+        scene.test_indices = val
+        scene.split = split
+    return scene
 
 
 def _read_scene_json(path: Path) -> dict:

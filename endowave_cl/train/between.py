@@ -563,6 +563,16 @@ class BetweenSampler:
                 fwd = (np.float32(s) * g0, np.float32(1.0 - s) * g1)
             elif self.model_splat:
                 fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
+        image, weight, t = self.target(index, s, disp, model_weight, fwd)
+        if not weight.any():
+            return None
+        return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+
+    def target(self, index: int, s: float, model_disp=None, model_weight: float = 0.0, model_fwd=None):
+        """between_target of pair index at fraction s with this sampler's settings: (image [H, W, 3],
+        weight [H, W], time).  Without the model's motion (the defaults) it is the static target:
+        the pair's flow interpolation alone."""
+        pair = self.pairs[index]
         fused = self.flow_splat and self.push == "fused"
         pushed = self._fused(index) if fused else None
         bend = None
@@ -571,12 +581,17 @@ class BetweenSampler:
                 self._bends[index] = pair_bend(self.scene, self.pairs, index, lambda p: [p, *self.extra(p)],
                                                self._fused if fused else None)
             bend = self._bends[index]
-        image, weight, t = between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                                          disp, model_weight, self.fuse, fwd, self.flow_splat, self.splat,
-                                          self.push, pushed, bend)
-        if not weight.any():
-            return None
-        return f0.camera, t, prepare_targets(self.rt, image, weight, temporary=True)
+        return between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
+                              model_disp, model_weight, self.fuse, model_fwd, self.flow_splat, self.splat,
+                              self.push, pushed, bend)
+
+    @classmethod
+    def from_config(cls, rt, scene, cfg, flows: Dict[int, object],
+                    extra_flows: Sequence[Dict[int, object]] = ()) -> "BetweenSampler":
+        """The sampler a TrainConfig's between_* keys describe."""
+        return cls(rt, scene, flows, cfg.between_two_flow, cfg.between_sampler, extra_flows, cfg.between_by_time,
+                   cfg.between_fuse, cfg.between_model_splat, cfg.between_flow_splat, cfg.between_splat,
+                   cfg.between_motion_refresh, cfg.between_push, cfg.between_s, cfg.between_path)
 
     def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
         """consistent_flows of pair index's estimators, made once."""
@@ -596,3 +611,53 @@ class BetweenSampler:
             kept = (step, model_flow(f0.camera, t0, t1), model_flow(f1.camera, t1, t0))
             self._motion[index] = kept
         return kept[1], kept[2]
+
+
+def between_flows(scene, cfg, progress: bool = False) -> Tuple[Dict[int, object], List[Dict[int, object]]]:
+    """(flows, extra_flows): the training pairs' flows of cfg.flow_method and of the between_flows
+    estimators ({k: FlowPair} each, cached on disk), as the in-between targets fuse them.  A scene
+    that brings its own flow (flow/) has no further estimators: every method reads that flow."""
+    from ..data.flow import flow_for_scene
+    from .config import between_flow_methods
+    own = flow_for_scene(scene, method=cfg.flow_method, progress=progress, max_pixels=cfg.flow_max_pixels)
+    extra = []
+    for m in between_flow_methods(cfg):
+        f = flow_for_scene(scene, method=m, progress=progress, max_pixels=cfg.flow_max_pixels)
+        if f.method == "user":
+            return dict(own), []
+        extra.append(dict(f))
+    return dict(own), extra
+
+
+class Teacher:
+    """The in-between teacher as an interpolator with no model (baselines.py "teacher"): the static
+    target an in-between step trains on (between_target without the model's motion: the estimators'
+    flows fused, pushed forward, reverse-splatted, bicubic, along curved paths), built at a held-out
+    frame from the training pair around it exactly as training builds it there.  It uses only the
+    training frames.  cfg: the TrainConfig whose between_* and flow keys say how (a baseline fixed
+    across runs takes the defaults)."""
+
+    def __init__(self, scene, cfg, progress: bool = False):
+        flows, extra = between_flows(scene, cfg, progress)
+        self.sampler = BetweenSampler.from_config(None, scene, cfg, flows, extra)
+        self.index = {(p.src, p.dst): i for i, p in enumerate(self.sampler.pairs)}
+
+    def image(self, i0: int, i1: int, s: float) -> Optional[np.ndarray]:
+        """[H, W, 3] float32: the target at fraction s between training frames i0 and i1, or None
+        where (i0, i1) is not a training pair with one camera (no flow between them)."""
+        index = self.index.get((i0, i1))
+        if index is None:
+            return None
+        return np.clip(self.sampler.target(index, s)[0], 0.0, 1.0)
+
+    def motion(self, i0: int, i1: int) -> Optional[float]:
+        """The mean magnitude (px) of the flow from training frame i0 to i1 over the pixels where
+        it passed its forward-backward check (all pixels where none did), or None where (i0, i1)
+        is not a training pair: how far the tissue moves between them."""
+        index = self.index.get((i0, i1))
+        if index is None:
+            return None
+        p = self.sampler.pairs[index]
+        mag = np.linalg.norm(np.asarray(p.flow, np.float32), axis=-1)
+        valid = np.asarray(p.valid) > 0.5 if getattr(p, "valid", None) is not None else None
+        return float(mag[valid].mean() if valid is not None and valid.any() else mag.mean())

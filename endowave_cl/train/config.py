@@ -60,6 +60,8 @@ SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_pos
 
 @dataclass
 class TrainConfig:
+    recipe: str = "default"         # the named set of values the others start from (RECIPES):
+                                    # "default", or "paper" (EndoWave as published)
     # -- schedule -------------------------------------------------------------------------------
     iterations: int = 0             # 0: STEPS_PER_TRAINING_FRAME per training frame, at least
                                     # BASE_ITERATIONS (6000: about 10-15 minutes for the 63 pulling
@@ -76,6 +78,10 @@ class TrainConfig:
     checkpoint_every: int = 1000
     # -- data -----------------------------------------------------------------------------------
     downscale: float = 1.0          # image downscale factor (2 = half size)
+    split: str = "test"             # "test": train on every non-test frame, score the test frames
+                                    # ((i - 1) % 8 == 0); "validation": also hold out the validation
+                                    # frames ((i - 5) % 8 == 0) and score those, for choosing settings
+                                    # without reading a test frame (data/scene.py apply_split)
     init_points: int = 0            # Gaussians created by init_gaussians; 0: INIT_POINTS_PER_PIXEL per
                                     # pixel of one frame, at most half of max_gaussians
     init_time_scale: float = 0.2    # longest initial temporal std (normalised time; 0: 2 training-
@@ -310,6 +316,24 @@ class TrainConfig:
 
 _FIELDS = {f.name: f for f in fields(TrainConfig)}
 
+# Named starting points (--recipe): the values that differ from the defaults above.  "paper" is
+# EndoWave as the paper trains it: 3DGS's learning rates and density control (opacity reset every
+# 3000 steps), 4DGS's schedule (30000 steps, densification from 500 to 15000), spherical harmonics
+# of degree 3, the RGB, depth (weight 1, DESIGN.md), flow and wavelet losses, no in-between steps,
+# Gaussians that start still, plain Adam (every Gaussian updated every step) and constant rates but
+# the positions'.  What the paper leaves open (flow and wavelet weights, the flow estimator:
+# OpenCV's in place of GMFlow) keeps this version's defaults.
+RECIPES: Dict[str, Dict[str, Any]] = {
+    "default": {},
+    "paper": {
+        "iterations": 30000, "densify_from": 500, "densify_every": 100, "densify_until": 15000,
+        "opacity_reset_every": 3000, "lr_position_init": 1.6e-4, "lr_position_final": 1.6e-6,
+        "lr_position_steps": 30000, "lr_anneal_final": 1.0, "adam_skip_culled": False,
+        "sh_degree": 3, "lambda_depth": 1.0, "between_prob": 0.0, "init_velocity": False,
+        "use_depth": True, "use_flow": True, "use_wavelet": True,
+    },
+}
+
 
 def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
     kind = type(getattr(TrainConfig(), name))  # the default's type: int, float, bool or str
@@ -423,6 +447,11 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         if getattr(cfg, name) != want:
             raise EndowaveError(f"{source}: key '{name}' must be {want} (the model layout is fixed in this "
                                 f"version; other values are not implemented), got {getattr(cfg, name)}")
+    if cfg.recipe not in RECIPES:
+        raise EndowaveError(f"{source}: key 'recipe' must be one of {', '.join(RECIPES)}, got {cfg.recipe!r}")
+    from ..data.scene import SPLITS
+    if cfg.split not in SPLITS:
+        raise EndowaveError(f"{source}: key 'split' must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
     from ..baselines import SAMPLERS
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
@@ -478,14 +507,34 @@ def read_toml(path, what: str) -> Dict[str, Any]:
         raise EndowaveError(f"{path}: not valid TOML: {e}") from None
 
 
-def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = None) -> TrainConfig:
-    """Defaults, then the TOML file at ``path`` (if any), then ``overrides`` (values or strings)."""
+def recipe_config(name: str, source: str = "--recipe") -> TrainConfig:
+    """The TrainConfig a recipe (RECIPES) starts from."""
+    if name not in RECIPES:
+        raise EndowaveError(f"{source}: unknown recipe {name!r} (choose from {', '.join(RECIPES)})")
     cfg = TrainConfig()
+    apply_values(cfg, {**RECIPES[name], "recipe": name}, f"recipe {name!r}")
+    return cfg
+
+
+def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = None,
+                recipe: Optional[str] = None) -> TrainConfig:
+    """The recipe's values (RECIPES: ``recipe``, else a "recipe" key of the overrides or of the
+    file, else "default"), then the TOML file at ``path`` (if any), then ``overrides`` (values or
+    strings)."""
+    data = {}
     if path is not None:
         data = read_toml(path, "config file")
         if "train" in data and isinstance(data["train"], dict):
             rest = {k: v for k, v in data.items() if k != "train"}
             data = {**data["train"], **rest}
+    overrides = dict(overrides or {})
+    name = recipe or overrides.get("recipe") or data.get("recipe") or "default"
+    if not isinstance(name, str):
+        raise EndowaveError(f"{path}: key 'recipe' expects str, got {name!r}")
+    cfg = recipe_config(name.strip(), "--recipe" if recipe else ("override" if "recipe" in overrides else str(path)))
+    data.pop("recipe", None)
+    overrides.pop("recipe", None)
+    if data:
         apply_values(cfg, data, str(path))
     if overrides:
         apply_values(cfg, overrides, "override", from_text=True)

@@ -119,11 +119,8 @@ class Trainer:
         self._reset_stats()
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
-        self._between = BetweenSampler(rt, scene, self.flows if cfg.between_prob > 0 else {},
-                                       cfg.between_two_flow, cfg.between_sampler, self._load_between_flows(),
-                                       cfg.between_by_time, cfg.between_fuse, cfg.between_model_splat,
-                                       cfg.between_flow_splat, cfg.between_splat, cfg.between_motion_refresh,
-                                       cfg.between_push, cfg.between_s, cfg.between_path)
+        self._between = BetweenSampler.from_config(rt, scene, cfg, self.flows if cfg.between_prob > 0 else {},
+                                                   self._load_between_flows())
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
@@ -423,7 +420,7 @@ class Trainer:
             self._run.after_step(self, s, ema)   # divergence guard (PSNR collapse; parameters at log steps)
             if c.eval_every and s % c.eval_every == 0 and s < c.iterations:
                 m = self.evaluate()
-                bar.write(f"step {s}: test PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f}), "
+                bar.write(f"step {s}: {self.scene.split} PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f}), "
                           f"SSIM {m['ssim']:.3f}, {len(self.params['means'])} Gaussians")
             if c.checkpoint_every and s % c.checkpoint_every == 0:
                 self.save()
