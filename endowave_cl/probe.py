@@ -86,7 +86,12 @@ def verdict(rt, C: int, vw: int, bw: int, timeout: Optional[float] = None) -> Ve
         d = json.loads(f.read_text())
         v = Verdict(bool(d["ok"]), str(d["reason"]), float(d["seconds"]), str(d["kind"]), cached=True)
     except Exception:   # absent or unreadable: probe again
-        v = run_child(rt, C, vw, bw, timeout)
+        timed = getattr(rt, "timed_build", None)     # the probe's time is build time (runtime.py)
+        if timed is None:
+            v = run_child(rt, C, vw, bw, timeout)
+        else:
+            with timed(f"the {vw}-lane rasterizer probe"):
+                v = run_child(rt, C, vw, bw, timeout)
         try:
             f.parent.mkdir(parents=True, exist_ok=True)
             tmp = f.with_suffix(f".tmp{os.getpid()}")

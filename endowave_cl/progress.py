@@ -49,9 +49,10 @@ class PlainProgress:
         self.interval = float(interval if interval is not None else
                               _env_get(ENV_INTERVAL) or DEFAULT_INTERVAL)
         self.clock = clock
-        self.t0 = self.last = clock()
+        self.t0 = self.last = self.t_begin = clock()
         self.postfix = ""
         self.closed = False
+        self.hold = False     # hold_rate(): no rate or time left yet
 
     def _out(self):
         return self.file if self.file is not None else sys.stdout
@@ -65,11 +66,14 @@ class PlainProgress:
             s += f"/{self.total} {self.unit} ({100.0 * self.n / self.total:.0f}%)"
         else:
             s += f" {self.unit}"
+        if self.hold and not self.closed:
+            s += ", measuring the rate"
+            done = 0
         s += f", {rate:.3g} {self.unit}/s" if done else ""
         if self.total and done and self.n < self.total:
             s += f", {_fmt_time((self.total - self.n) / rate)} left"
         if self.closed:
-            s += f", {_fmt_time(dt)} in all"
+            s += f", {_fmt_time(self.clock() - self.t_begin)} in all"
         return s + (f", {self.postfix}" if self.postfix else "")
 
     def _emit(self) -> None:
@@ -110,6 +114,37 @@ class PlainProgress:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+HOLD_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, measuring the rate{postfix}]"
+
+
+def hold_rate(bar) -> None:
+    """Show no rate or time left until restart_rate(bar) (a tqdm bar or a PlainProgress)."""
+    if getattr(bar, "disable", False):
+        return
+    if isinstance(bar, PlainProgress):
+        bar.hold = True
+    else:
+        bar.bar_format = HOLD_FORMAT
+        bar.refresh()
+
+
+def restart_rate(bar) -> None:
+    """Measure the rate and time left from now on (a tqdm bar or a PlainProgress): the first steps
+    of a run build kernels and fill caches, and a rate that counts them predicts hours for minutes."""
+    if getattr(bar, "disable", False):
+        return
+    if isinstance(bar, PlainProgress):
+        bar.t0, bar.initial, bar.hold = bar.clock(), bar.n, False
+        return
+    bar.bar_format = None
+    n, postfix = bar.n, getattr(bar, "postfix", None)
+    bar.reset(total=bar.total)       # start time and tqdm's smoothed rates start over
+    bar.initial = bar.n = bar.last_print_n = n
+    if postfix:
+        bar.postfix = postfix
+    bar.refresh()
 
 
 def plain_wanted() -> bool:

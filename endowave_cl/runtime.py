@@ -21,12 +21,14 @@ a ``platform:device`` index pair (``"0:0"``), or a case-insensitive substring of
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
 import os
 import re
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -403,6 +405,11 @@ class Runtime:
         self.cache: Dict[object, object] = {}   # see cached()
         self._pool = None
         self._dummy = None
+        # seconds spent building or loading programs (and probing variants, probe.py), so that a
+        # run can report them apart from its training time; build_notice(what), when set, is
+        # called once, before the first program built from source (a cold cache)
+        self.build_seconds = 0.0
+        self.build_notice = None
 
     # -- what kernels need to size themselves -------------------------------------------------
     @property
@@ -516,6 +523,18 @@ class Runtime:
         path = self.kdir / filename
         return _default_cache_dir() / f"{path.stem}-{self._cache_key(path, tuple(str(o) for o in options))}.bin"
 
+    @contextlib.contextmanager
+    def timed_build(self, what: str):
+        """Count the block's seconds in build_seconds; the first one calls build_notice(what)."""
+        notice, self.build_notice = self.build_notice, None
+        if notice is not None:
+            notice(what)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.build_seconds += time.perf_counter() - t0
+
     def program(self, filename: str, options: Sequence[str] = (), source: Optional[str] = None):
         """Build (or fetch from cache) the program in cl/<filename>.
 
@@ -546,11 +565,14 @@ class Runtime:
                 key = self._cache_key(path, opts)
                 cache_file = _default_cache_dir() / f"{path.stem}-{key}.bin"
                 if cache_file.is_file():
+                    t0 = time.perf_counter()
                     prg = self._load_cached(cache_file, key, full_opts)
+                    self.build_seconds += time.perf_counter() - t0
             if prg is None:
                 prg = cl.Program(self.ctx, text)
                 try:
-                    prg.build(options=full_opts)
+                    with self.timed_build(filename):
+                        prg.build(options=full_opts)
                 except cl.Error as e:  # RuntimeError subclasses included
                     try:
                         log = prg.get_build_info(self.device, cl.program_build_info.LOG)

@@ -152,6 +152,8 @@ def test_train_accepts_a_video(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "ingesting it into" in out and "final test PSNR" in out, out
     assert (run / "scene" / "poses_bounds.npy").is_file()
+    final = json.loads((run / "train_log.json").read_text())["final"]
+    assert final["build_seconds"] >= 0 and final["train_seconds"] >= 0     # reported apart
     assert main(args + ["--iterations", "4"]) == 0          # resume: the same ingested scene
     assert "ingested from" in capsys.readouterr().out
     other = _write_video(tmp_path / "other", _moving_frames(10)[::-1])

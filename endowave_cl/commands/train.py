@@ -119,6 +119,17 @@ def check_downscaled_size(scene_path, downscale: float) -> None:
                             f"{img_dir} (at least {MIN_IMAGE_SIZE} per side needed)")
 
 
+def build_notice(rt):
+    """The line printed before the first kernel build from source (an empty cache: the first run on
+    this device, or after an update), so that a cold start does not look hung."""
+    def notice(what: str) -> None:
+        from tqdm import tqdm
+        how_long = "a few seconds to a minute on a GPU" if rt.is_gpu else "1-2 minutes on a 2-core CPU"
+        tqdm.write(f"building the OpenCL kernels for this device (first run here with this version; about "
+                   f"{how_long}; cached for later runs; starting with {what}) ...")
+    return notice
+
+
 VIDEO_SCENE = "scene"    # RUN/scene: where `train VIDEO` ingests the video
 
 
@@ -182,6 +193,7 @@ def run(args) -> int:
         cfg.use_depth = False
     rt = get_runtime(getattr(args, "device", None))
     print(f"device: {rt.describe()}")
+    rt.build_notice = build_notice(rt)
     losses = ["rgb"] + [n for n, on in (("depth", cfg.use_depth), ("flow", cfg.use_flow),
                                          ("wavelet", cfg.use_wavelet)) if on]
     auto_sh = cfg.sh_degree < 0          # resolved by the trainer from the cameras (train/config.py)
@@ -201,5 +213,7 @@ def run(args) -> int:
           f"colour SH degree {cfg.sh_degree}{why}")
     m = trainer.train(progress=not args.quiet)
     print(f"final {scene.split} PSNR {m['psnr']:.2f} dB (masked {m['psnr_masked']:.2f} dB), SSIM {m['ssim']:.4f}, "
-          f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s; run saved in {out}")
+          f"{m['gaussians']} Gaussians, {m['step']} steps in {m['train_seconds']:.0f} s"
+          + (f" (+ {m['build_seconds']:.0f} s building kernels)" if m.get("build_seconds", 0) >= 1 else "")
+          + f"; run saved in {out}")
     return 0

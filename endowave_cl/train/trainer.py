@@ -57,6 +57,9 @@ def late_factor(cfg, step: int, final: float) -> float:
     return 1.0 - u * (1.0 - final)
 
 
+ETA_WARMUP_STEPS = 5   # steps of a session before the progress rate is measured (builds, caches)
+
+
 class Trainer:
     def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True,
                  progress: bool = False):
@@ -66,6 +69,7 @@ class Trainer:
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self._flow_progress = progress    # a progress bar while flows not in the cache are computed
         self.t_created = time.perf_counter()   # a time budget (cfg.minutes) counts from here
+        self._build0 = getattr(rt, "build_seconds", 0.0)   # kernel builds are reported apart (runtime.py)
         self._auto_cap = cfg.max_gaussians <= 0           # raised for short lives once the model exists
         self.auto_iterations = cfg.iterations <= 0        # visits per training frame (config.py)
         cfg.resolve_iterations(len(scene.train_indices))
@@ -380,14 +384,32 @@ class Trainer:
                       f"{c.lr_position_steps} steps); re-planned as the step rate changes")
         return total != old
 
+    def _split_build_time(self, loop_seconds: float, step_times: List[float], loop_build0: float,
+                          warm_build: float):
+        """(training seconds, build seconds) of a session: the builds before the loop (runtime.py
+        counts them), the first ETA_WARMUP_STEPS steps' excess over the typical step that follows (a
+        driver such as PoCL compiles a kernel at its first launch, so builds hide in those steps),
+        and builds timed in the loop after them (a kernel first used at densification)."""
+        w = ETA_WARMUP_STEPS
+        excess = 0.0
+        if len(step_times) > w:
+            typical = float(np.median(step_times[w:w + 50]))
+            excess = max(0.0, float(sum(step_times[:w])) - w * typical)
+        later = getattr(self.rt, "build_seconds", 0.0) - warm_build
+        before = loop_build0 - self._build0
+        return max(0.0, loop_seconds - excess - later), before + excess + later
+
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
-        from ..progress import progress as progress_bar
+        from ..progress import hold_rate, progress as progress_bar, restart_rate
         c = self.cfg
         order = list(self.scene.train_indices)
         bar = progress_bar(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
                    desc="train", unit="it")
         t_start = time.perf_counter()
+        loop_build0 = warm_build = getattr(self.rt, "build_seconds", 0.0)
+        eta_from = self.step + ETA_WARMUP_STEPS   # the rate and time left count the steps after these
+        hold_rate(bar)
         budget = self._start_budget()
         step_times: List[float] = []
         ema = self._run.ema                  # restored on resume
@@ -425,10 +447,15 @@ class Trainer:
             if c.checkpoint_every and s % c.checkpoint_every == 0:
                 self.save()
             bar.update(1)
+            if self.step == eta_from:
+                restart_rate(bar)             # the time left from here on
+                warm_build = getattr(self.rt, "build_seconds", 0.0)
         bar.close()
-        seconds = time.perf_counter() - t_start
+        seconds, build_seconds = self._split_build_time(time.perf_counter() - t_start, step_times,
+                                                        loop_build0, warm_build)
         self.save()
         metrics = self.evaluate()
-        metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds})
+        metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds,
+                        "build_seconds": build_seconds})
         self._run.finish(self, metrics)     # train_log.json (strict JSON), release the run folder lock
         return metrics
