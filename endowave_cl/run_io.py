@@ -48,7 +48,17 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     # in the units the run was trained in (runs from before scene units: the files' own)
     scene = apply_split(load_scene(scene_path, downscale=cfg.downscale, world_scale=run_world_scale(state, ck)),
                         cfg.split)
+    check_run_scene(state, scene, ck)
     return LoadedRun(run, cfg, scene, state["gaussians"], int(state["step"]), ck)
+
+
+def check_run_scene(state, scene, ck, remedy: str = "pass the run's own scene with --scene, or train a run on "
+                                                   "this one") -> None:
+    """Refuse a scene whose frames are not the ones the run was trained on (--scene OTHER, or the
+    scene folder regenerated in place): scores, renders and PLYs against them would be wrong."""
+    from .train.run_folder import check_same_scene
+    check_same_scene(state.get("extra", {}), scene, ck,
+                     remedy=f"evaluating, rendering or exporting against it would be wrong; {remedy}")
 
 
 def run_world_scale(state, where) -> float:

@@ -194,8 +194,9 @@ def test_eval_fps_runs_and_one_frame_scene(tiny_scene, tiny_run, tmp_path):
         shutil.copy(first, one / sub / first.name)
     np.save(one / "poses_bounds.npy", np.load(tiny_scene / "poses_bounds.npy")[:1])
     shutil.copy(tiny_scene / "scene.json", one / "scene.json")
-    _one_line_error(_cli("eval", str(tiny_run), "--scene", str(one)), str(one), "1 frame(s)",
-                    "eval needs at least 2 frames")
+    # another scene than the run's: its fingerprint (10 frames there, 1 here) refuses it first (issue 57)
+    _one_line_error(_cli("eval", str(tiny_run), "--scene", str(one)), str(one), "is not that scene",
+                    "10 frames there, 1 here")
 
 
 def test_eval_json_is_strict_when_psnr_is_infinite(tiny_run, monkeypatch, capsys):

@@ -91,3 +91,117 @@ def test_signal_during_startup_is_one_line(tmp_path, sig):
             assert len(err.strip().splitlines()) <= 1, err
         else:
             assert p.returncode == -sig, (delay, p.returncode, err)
+
+
+# ------------------------------------------------------------------ data loss (items 1, 2, 5)
+def _fake_run(run, step=3):
+    import json
+    run.mkdir(parents=True, exist_ok=True)
+    (run / f"checkpoint_{step:07d}.npz").write_bytes(b"model")
+    (run / "config.json").write_text(json.dumps({"scene": "s", "iterations": 3}))
+    (run / "train_log.json").write_text(json.dumps({"final": None, "history": [{"step": step}]}))
+
+
+def test_restart_killed_before_its_first_checkpoint_keeps_previous_run(tmp_path):
+    """train --restart twice, the first killed before its first checkpoint (batch --force alike)."""
+    import json
+    from endowave_cl.train.run_folder import retire_previous_run
+    run = tmp_path / "run"
+    _fake_run(run)
+    logs = []
+    assert retire_previous_run(run, logs.append) == run / "previous_run"
+    (run / "config.json").write_text(json.dumps({"scene": "s", "iterations": 5}))   # start() of run 2, then killed
+    retire_previous_run(run, logs.append)                                          # run 3 --restart
+    prev = run / "previous_run"
+    assert (prev / "checkpoint_0000003.npz").read_bytes() == b"model"
+    assert json.loads((prev / "config.json").read_text())["iterations"] == 3
+    assert (prev / "train_log.json").is_file()
+    assert not (run / "config.json").exists()
+    # a run that did save a model does replace previous_run/
+    _fake_run(run, step=7)
+    retire_previous_run(run, logs.append)
+    assert (prev / "checkpoint_0000007.npz").is_file() and not (prev / "checkpoint_0000003.npz").exists()
+
+
+@pytest.mark.parametrize("name,text", [("config.json", '{"lr": 1}'), ("config.json", "not json"),
+                                       ("train_log.json", "[1, 2]")])
+def test_out_folder_with_a_users_config_is_refused(tmp_path, name, text):
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.run_folder import RunSession
+    d = tmp_path / "mine"
+    d.mkdir()
+    (d / name).write_text(text)
+    with pytest.raises(EndowaveError, match=f"{name}: this file is not an endowave-cl run's"):
+        RunSession(d, log=lambda m: None)
+    assert (d / name).read_text() == text and sorted(p.name for p in d.iterdir()) == [name]
+
+
+def test_all_checkpoints_unreadable_does_not_start_over_silently(tmp_path):
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.run_folder import RunSession
+    run = tmp_path / "run"
+    _fake_run(run)
+    s = RunSession(run, log=lambda m: None)
+    with pytest.raises(EndowaveError, match="not a readable checkpoint"):     # the first train: set aside
+        s.resume_point(None)
+    s.abort()
+    assert (run / "checkpoint_0000003.npz.corrupt").is_file()
+    s = RunSession(run, log=lambda m: None)
+    with pytest.raises(EndowaveError, match="no readable checkpoint to resume from.*--restart"):
+        s.resume_point(None)                                                   # the same command again
+    s.abort()
+    (run / "checkpoint_0000003.npz.corrupt").unlink()                          # removed by hand: the log is there
+    s = RunSession(run, log=lambda m: None)
+    with pytest.raises(EndowaveError, match="train_log.json: this run logged training steps"):
+        s.resume_point(None)
+    s.abort()
+    assert "history" in (run / "train_log.json").read_text()
+
+
+# ------------------------------------------------------------------ a run opened on another scene (item 3)
+@pytest.fixture(scope="module")
+def own_run(tmp_path_factory):
+    """(scene, run): a tiny scene of this module's own (tests regenerate it) and a 2-step run on it."""
+    from endowave_cl.data.synth import make_synthetic_scene
+    root = tmp_path_factory.mktemp("own")
+    make_synthetic_scene(root / "scene", width=48, height=32, frames=10, seed=3)
+    rc, _, err = _main("train", root / "scene", "--out", root / "run", "--iterations", "2", "--quiet", "--no-flow",
+                       "--set", "init_points=100")
+    assert rc == 0, err
+    return root / "scene", root / "run"
+
+
+def test_eval_render_view_on_another_scene_are_refused(own_run, tmp_path):
+    from endowave_cl.data.synth import make_synthetic_scene
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.run_io import load_run
+    scene, run = own_run
+    other = tmp_path / "other"
+    make_synthetic_scene(other, width=48, height=32, frames=10, seed=4)
+    before = sorted(p.name for p in run.iterdir())
+    for cmd in (["eval", run, "--scene", other, "--fps-runs", "0"], ["render", run, "--scene", other, "--no-video"]):
+        rc, _, err = _main(*cmd)
+        _one_line(rc, err, "is not that scene", "its frames differ")
+    with pytest.raises(EndowaveError, match="is not that scene"):   # view opens the run with load_run
+        load_run(run, str(other))
+    assert sorted(p.name for p in run.iterdir()) == before           # no eval.json, no render/
+    assert load_run(run).step == 2
+
+
+def test_scene_regenerated_in_place_is_refused_by_eval_and_export(own_run, tmp_path):
+    import shutil
+    from endowave_cl.data.synth import make_synthetic_scene
+    scene, run = own_run
+    keep = tmp_path / "keep"
+    shutil.copytree(scene, keep)
+    try:
+        make_synthetic_scene(scene, width=48, height=32, frames=10, seed=9, force=True)
+        for cmd in (["eval", run, "--fps-runs", "0", "--no-baselines"], ["export", run, "--out", tmp_path / "m.ply"]):
+            rc, _, err = _main(*cmd)
+            _one_line(rc, err, "is not that scene")
+        assert not (tmp_path / "m.ply").exists()
+    finally:
+        shutil.rmtree(scene)
+        shutil.copytree(keep, scene)
+    rc, _, err = _main("export", run, "--out", tmp_path / "m.ply")
+    assert rc == 0 and (tmp_path / "m.ply").is_file(), err

@@ -9,6 +9,28 @@ def add_arguments(p) -> None:
     p.add_argument("--out", help="PLY path (default RUN/model_t<time>.ply)")
 
 
+def _check_scene(run, state, ck, world_scale) -> None:
+    """The run's scene fingerprint against its scene folder, when that folder is still there (the
+    PLY is in the units of the scene the run was trained on: another one's would not match it)."""
+    import json
+    import sys
+    from pathlib import Path
+    from ..data.scene import load_scene
+    from ..run_io import check_run_scene
+    try:
+        d = json.loads((Path(run) / "config.json").read_text())
+        scene_path, downscale = Path(d["scene"]), float(d.get("downscale", 1))
+    except (OSError, ValueError, KeyError, TypeError):
+        return                       # an older or damaged config.json: nothing to check against
+    if not isinstance(state.get("extra", {}).get("scene_fingerprint"), dict):
+        return
+    if not scene_path.is_dir():
+        print(f"note: the run's scene {scene_path} is not there; the PLY is not checked against it", file=sys.stderr)
+        return
+    check_run_scene(state, load_scene(scene_path, downscale=downscale, world_scale=world_scale), ck,
+                    remedy=f"put the run's scene back at {scene_path}, or move it away to export unchecked")
+
+
 def run(args) -> int:
     import sys
     from pathlib import Path
@@ -36,6 +58,7 @@ def run(args) -> int:
     g = state["gaussians"]
     from ..run_io import run_world_scale
     world_scale = run_world_scale(state, ck)
+    _check_scene(run, state, ck, world_scale)
     n = export_ply(out, g, args.time, scale=1.0 / world_scale)   # in the scene files' units
     print(f"wrote {out} ({n if n is not None else '?'} Gaussians at t = {args.time}, in the units of "
           f"the scene's depth files and poses)")

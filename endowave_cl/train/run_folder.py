@@ -37,6 +37,7 @@ RUN_OUTPUTS = ("config.json", "train_log.json", "eval.json", "render")
 RUN_OUTPUT_GLOBS = ("checkpoint_*.npz", "checkpoint_*.npz.corrupt", "model_t*.ply")
 # temporaries of files only `train` writes in a run folder: under the lock they are stale whatever
 # their pid (this also catches the pid-less names of earlier versions)
+CHECKPOINT_FILE_RE = re.compile(r"^checkpoint_\d+\.npz(\.corrupt)?$")   # a model, readable or not
 TRAIN_TEMP_RE = re.compile(r"^\.(checkpoint_\d+\.npz|config\.json|train_log\.json)\..*\.tmp$")
 
 
@@ -52,6 +53,7 @@ def make_run_dir(run_dir) -> bool:
     if run_dir.is_dir():
         if not os.access(run_dir, os.W_OK | os.X_OK):
             raise EndowaveError(f"{run_dir}: run folder is not writable")
+        check_not_foreign(run_dir)
         return False
     for parent in run_dir.parents:
         if parent.exists():
@@ -65,6 +67,27 @@ def make_run_dir(run_dir) -> bool:
     except OSError as e:
         raise _oserror("create the run folder", run_dir, e) from None
     return True
+
+
+def _is_ours(path: Path, keys) -> bool:
+    """Whether path is a JSON object with all of keys (a file endowave-cl wrote)."""
+    import json
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and all(k in d for k in keys)
+
+
+def check_not_foreign(run_dir) -> None:
+    """Refuse a folder whose config.json / train_log.json are not a run's (a user's own files that
+    training would overwrite): an existing --out must be a run folder or hold neither file."""
+    run_dir = Path(run_dir)
+    for name, keys in (("config.json", ("scene", "iterations")), ("train_log.json", ("history",))):
+        p = run_dir / name
+        if p.exists() and not (p.is_file() and _is_ours(p, keys)):
+            raise EndowaveError(f"{p}: this file is not an endowave-cl run's {name} and training would overwrite "
+                                f"it; {run_dir} is not a run folder: use another --out")
 
 
 class RunLock:
@@ -181,6 +204,15 @@ def retire_previous_run(run_dir, log: Callable[[str], None] = print) -> Optional
         items += sorted(run_dir.glob(g))
     if not items:
         return None
+    final = run_dir / PREVIOUS_RUN
+    if final.exists() and not any(CHECKPOINT_FILE_RE.match(p.name) for p in items):
+        # a run that saved no model (killed before its first checkpoint) never replaces the
+        # earlier one in previous_run/: only the files it wrote at its start go
+        for p in items:
+            if p.name in ("config.json", "train_log.json") and p.is_file():
+                p.unlink()
+        log(f"--restart: the interrupted run here saved no checkpoint; {final} is kept as it was")
+        return final
     staging = run_dir / f".{PREVIOUS_RUN}.{os.getpid()}.new.tmp"
     if staging.exists():
         shutil.rmtree(staging)
@@ -188,7 +220,6 @@ def retire_previous_run(run_dir, log: Callable[[str], None] = print) -> Optional
     # the newest model moves last: if we are killed half-way it is still in the run folder
     for p in items:
         os.replace(p, staging / p.name)
-    final = run_dir / PREVIOUS_RUN
     old = None
     if final.exists():
         old = run_dir / f".{PREVIOUS_RUN}.{os.getpid()}.old.tmp"
@@ -209,8 +240,10 @@ def scene_fingerprint(scene) -> dict:
             "sha1": h.hexdigest()}
 
 
-def check_same_scene(ck_extra: dict, scene, ckpt_path) -> None:
-    """Refuse to resume a run on another scene (or the same at another size)."""
+def check_same_scene(ck_extra: dict, scene, ckpt_path,
+                     remedy: str = "use --restart to start over, or another --out") -> None:
+    """Refuse to resume (or evaluate, render, export, view) a run on another scene, or the same
+    folder regenerated, or at another size: the frames' fingerprint differs from the run's."""
     want = ck_extra.get("scene_fingerprint")
     if not isinstance(want, dict):
         return    # checkpoint from before fingerprints: nothing to compare
@@ -225,7 +258,16 @@ def check_same_scene(ck_extra: dict, scene, ckpt_path) -> None:
     else:
         why = "its frames differ"
     raise EndowaveError(f"{ckpt_path}: this run was trained on {was} and {scene.path} is not that scene "
-                        f"({why}); use --restart to start over, or another --out")
+                        f"({why}); {remedy}")
+
+
+def _has_history(log_file: Path) -> bool:
+    import json
+    try:
+        d = json.loads(log_file.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and bool(d.get("history"))
 
 
 class StopRequested(KeyboardInterrupt):
@@ -286,7 +328,19 @@ class RunSession:
         if ck is not None:
             check_same_scene(ck["extra"], scene, path)
             self.last_saved = path
-        return path, ck
+            return path, ck
+        # nothing to resume from: starting at step 0 would overwrite the log of a run whose
+        # checkpoints were all set aside as unreadable (or removed); say so instead
+        corrupt = sorted(self.run_dir.glob("checkpoint_*.npz.corrupt"))
+        log_file = self.run_dir / "train_log.json"
+        if corrupt:
+            raise EndowaveError(f"{self.run_dir}: no readable checkpoint to resume from ({len(corrupt)} set aside as "
+                                f"unreadable, e.g. {corrupt[-1].name}); use --restart to start over (the earlier "
+                                f"files move to previous_run/)")
+        if log_file.is_file() and _has_history(log_file):
+            raise EndowaveError(f"{log_file}: this run logged training steps but has no checkpoint to resume from; "
+                                f"use --restart to start over (the earlier files move to previous_run/)")
+        return None, None
 
     def start(self, trainer, ck) -> None:
         import json
