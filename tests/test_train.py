@@ -142,6 +142,7 @@ def test_eval_render_export_commands(rt, tiny_scene, tmp_path):
     assert r.returncode == 0, r.stderr
     assert len(list((run / "render" / "frames").glob("*.png"))) == 2   # frames 1 and 9 of 10
     assert len(list((run / "render" / "depth").glob("*.png"))) == 2
+    assert len(list((run / "render" / "depth_colour").glob("*.png"))) == 2   # turbo beside the raw 16-bit
     r = _cli("export", str(run), "--time", "0.5", "--out", str(tmp_path / "m.ply"))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "m.ply").read_bytes().startswith(b"ply\n")

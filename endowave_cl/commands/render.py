@@ -1,8 +1,9 @@
-"""Render a trained run: the test frames (PNG), depth images (16-bit PNG) and a video of every
-frame in time order, written under RUN/render/ (each file written to a temporary name and renamed)."""
+"""Render a trained run: the test frames (PNG), depth images (16-bit PNG, depth x 1000, and a
+colour-mapped PNG beside each: turbo, red = near, one range for all frames) and a video of every
+frame in time order (H.264 in MP4, which browsers play), written under RUN/render/ (each file
+written to a temporary name and renamed)."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,6 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import cv2
-
     from ..gaussians import upload
     from ..progress import progress as progress_bar
     from ..render import render
@@ -38,12 +37,13 @@ def run(args) -> int:
     params = upload(rt, r.gaussians)
     out = Path(args.run) / "render"
     from ..atomic import stale_temporaries
-    for folder in (out, out / "frames", out / "depth"):   # left by a killed render
+    for folder in (out, out / "frames", out / "depth", out / "depth_colour"):   # left by a killed render
         for p in stale_temporaries(folder):
             p.unlink()
     frames = r.scene.frames
     idx = range(len(frames)) if args.all else r.scene.test_indices
     video_frames = []
+    depths = []          # (name, depth in file units, valid) of the written frames, coloured at the end
     for k in progress_bar(range(len(frames)), desc="render", unit="frame"):
         f = frames[k]
         if k not in idx and args.no_video:
@@ -53,26 +53,29 @@ def run(args) -> int:
         if k in idx:
             write_png_atomic(out / "frames" / f"{f.name or k:0>6}.png", img)
             d = h["depth"] / np.maximum(h["alpha"], 1e-6) / r.scene.world_scale   # [H, W] file units
+            depths.append((f"{f.name or k:0>6}.png", d, h["alpha"] > 0.5))
             d = np.clip(d * DEPTH_PNG_SCALE, 0, 65535).astype(np.uint16)
             write_png_atomic(out / "depth" / f"{f.name or k:0>6}.png", d)
         if not args.no_video:
-            video_frames.append((img * 255 + 0.5).astype(np.uint8)[..., ::-1])
+            video_frames.append((img * 255 + 0.5).astype(np.uint8))
+    colour_note = ""
+    if depths:
+        from ..video import depth_colour, depth_range
+        lo, hi = depth_range([d for _, d, _ in depths], [v for _, _, v in depths])
+        for name, d, valid in depths:
+            write_png_atomic(out / "depth_colour" / name, depth_colour(d, valid, lo, hi))
+        colour_note = f"; depth_colour/ = turbo, red = near {lo:.4g}, blue = far {hi:.4g} (file units)"
     if video_frames:
+        from ..video import write_video
         path = out / "video.mp4"
-        from ..atomic import default_file_mode, temp_prefix
-        tmp = out / f"{temp_prefix('video.mp4')}w.tmp.mp4"   # pid in the name: stale ones are removed
-        hgt, wid = video_frames[0].shape[:2]
-        vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), args.fps, (wid, hgt))
-        for fr in video_frames:
-            vw.write(fr)
-        vw.release()
-        if tmp.is_file() and tmp.stat().st_size > 0:
-            os.chmod(tmp, default_file_mode())
-            os.replace(tmp, path)
-            print(f"video: {path}")
+        try:
+            codec = write_video(path, video_frames, args.fps)
+        except (OSError, ValueError, RuntimeError) as e:
+            print(f"video: not written ({e}); the frames are written as PNG")
         else:
-            if tmp.exists():
-                tmp.unlink()
-            print("video: OpenCV could not write mp4 here; frames are written as PNG")
-    print(f"wrote {len(list(idx))} frames and depth images under {out} (depth PNG = depth x {DEPTH_PNG_SCALE:g})")
+            what = "H.264" if codec == "h264" else ("MPEG-4 Part 2: imageio-ffmpeg is missing, so browsers "
+                                                    "will not play it; pip install imageio-ffmpeg")
+            print(f"video: {path} ({what})")
+    print(f"wrote {len(list(idx))} frames and depth images under {out} (depth PNG = depth x {DEPTH_PNG_SCALE:g}"
+          f"{colour_note})")
     return 0
