@@ -18,11 +18,11 @@ from ..atomic import write_bytes_atomic, write_json_atomic
 from . import tasks as T
 
 METRICS = ("psnr", "psnr_masked", "ssim", "lpips")
-BASELINES = ("mean", "dis", "dis_cubic")   # endowave_cl.baselines.NAMES
+BASELINES = ("mean", "dis", "dis_cubic", "teacher")   # endowave_cl.baselines.NAMES
 # numeric columns, in order; the mean row averages them
 NUMERIC = (list(METRICS) + [f"{b}_{k}" for b in BASELINES for k in METRICS]
            + ["margin_psnr", "margin_psnr_masked", "margin_ssim", "margin_lpips",
-              "gaussians", "steps", "train_seconds", "fps"])
+              "margin_teacher_psnr", "margin_teacher_lpips", "gaussians", "steps", "train_seconds", "fps"])
 COLUMNS = ["scene", "status"] + NUMERIC + ["margin_over", "device", "attempts", "error", "run"]
 
 
@@ -71,6 +71,8 @@ def scene_row(manifest, scene, tasks: Optional[dict] = None) -> dict:
         for k in METRICS:
             row[f"margin_{k}"] = _num(mg.get(k))
         row["margin_over"] = mg.get("over")
+        mt = ev.get("margin_teacher") or {}
+        row["margin_teacher_psnr"], row["margin_teacher_lpips"] = _num(mt.get("psnr")), _num(mt.get("lpips"))
         row["device"] = ev.get("device")
         row["fps"] = _num(ev.get("fps"))
         row["gaussians"] = _num(ev.get("gaussians")) if ev.get("gaussians") is not None else row["gaussians"]
