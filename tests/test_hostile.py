@@ -205,3 +205,93 @@ def test_scene_regenerated_in_place_is_refused_by_eval_and_export(own_run, tmp_p
         shutil.copytree(keep, scene)
     rc, _, err = _main("export", run, "--out", tmp_path / "m.ply")
     assert rc == 0 and (tmp_path / "m.ply").is_file(), err
+
+
+# ------------------------------------------------------------------ flow: cache, sizes, user flow (items 11, 12, 16, 17, 20)
+@pytest.fixture(scope="module")
+def flow_scene(tmp_path_factory):
+    from endowave_cl.data.synth import make_synthetic_scene
+    out = tmp_path_factory.mktemp("flow") / "scene"
+    make_synthetic_scene(out, width=64, height=48, frames=6, seed=2)
+    return out
+
+
+def test_damaged_flow_cache_file_is_named_and_recomputed(flow_scene, tmp_path, capsys):
+    import numpy as np
+    from endowave_cl.data import flow_for_scene, load_scene
+    scene = load_scene(flow_scene)
+    first = flow_for_scene(scene, progress=False, cache_dir=tmp_path)
+    files = sorted(first.cache_path.glob("*.npz"))
+    data = files[0].read_bytes()
+    for damage in (data[: len(data) // 2], data[:100] + bytes([data[100] ^ 0xFF]) + data[101:]):
+        files[0].write_bytes(damage)
+        again = flow_for_scene(scene, progress=False, cache_dir=tmp_path)
+        assert again.computed, "a damaged entry must be recomputed"
+        err = capsys.readouterr().err
+        assert files[0].name in err and "damaged" in err, err
+        np.testing.assert_array_equal(again[0].flow, first[0].flow)
+    assert not flow_for_scene(scene, progress=False, cache_dir=tmp_path).computed   # replaced: a hit again
+
+
+def test_flow_cache_that_cannot_be_written_is_named_and_skipped(flow_scene, tmp_path, monkeypatch, capsys):
+    import errno
+    import numpy as np
+    from endowave_cl.data import flow_for_scene, load_scene
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(np, "savez", full)
+    res = flow_for_scene(load_scene(flow_scene), progress=False, cache_dir=tmp_path / "c")
+    assert res.computed and res.cache_path is None and len(res) > 0
+    err = capsys.readouterr().err
+    assert str(tmp_path / "c") in err and "No space left on device" in err, err
+
+
+def test_flow_max_pixels_too_small_is_refused_up_front(flow_scene, tmp_path):
+    rc, _, err = _main("flow", flow_scene, "--max-pixels", "50", "--cache-dir", tmp_path)
+    _one_line(rc, err, "--max-pixels", "at least 256")
+    rc, _, err = _main("train", flow_scene, "--out", tmp_path / "r", "--set", "flow_max_pixels=20")
+    _one_line(rc, err, "flow_max_pixels", "at least 256")
+    assert not (tmp_path / "r").exists()
+    from endowave_cl.data.flow import estimation_size
+    assert min(estimation_size(640, 480, 300)) >= 16
+
+
+def test_full_size_user_flow_and_gt_flow_at_an_uneven_downscale(flow_scene, tmp_path):
+    """--downscale 2.5 on 64x48 gives 26x19 (ratios 0.406 / 0.396): full-size flow is what the docs
+    ask for and must fit; a gt_flow file that cannot be used fails train before any step."""
+    import shutil
+    import numpy as np
+    from endowave_cl.data import flow_for_scene, load_scene
+    from endowave_cl.data.flow import _fit_to_scene
+    scene = load_scene(flow_scene, downscale=2.5)
+    assert (scene.width, scene.height) == (26, 19)
+    fit = _fit_to_scene(np.ones((48, 64, 2), np.float32), "f.npy", scene)
+    assert fit.shape == (19, 26, 2)
+    s2 = tmp_path / "s"
+    shutil.copytree(flow_scene, s2)
+    np.save(s2 / "gt_flow" / "000001.npy", np.zeros((10, 10, 2), np.float32))
+    t0 = time.perf_counter()
+    rc, out, err = _main("train", s2, "--out", tmp_path / "r", "--iterations", "50", "--quiet", "--no-flow")
+    _one_line(rc, err, "000001.npy", "does not scale")
+    assert "training" not in out and time.perf_counter() - t0 < 60
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("value", [1e30, -3e6, float("nan")])
+def test_user_flow_with_absurd_vectors_is_named(flow_scene, tmp_path, value):
+    import shutil
+    import numpy as np
+    from endowave_cl.data import flow_for_scene, load_scene
+    from endowave_cl.errors import DataError
+    s2 = tmp_path / "s"
+    shutil.copytree(flow_scene, s2)
+    scene = load_scene(s2)
+    (s2 / "flow").mkdir()
+    names = [f.name for f in scene.frames]
+    for k, k2 in zip(scene.train_indices[:-1], scene.train_indices[1:]):
+        np.save(s2 / "flow" / f"{names[k]}_{names[k2]}.npy", np.zeros((48, 64, 2), np.float32))
+    bad = s2 / "flow" / f"{names[scene.train_indices[0]]}_{names[scene.train_indices[1]]}.npy"
+    np.save(bad, np.full((48, 64, 2), value, np.float32))
+    with pytest.raises(DataError, match=bad.name):
+        flow_for_scene(load_scene(s2), progress=False)

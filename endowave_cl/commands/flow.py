@@ -43,7 +43,12 @@ def gt_epe(scene, result):
             continue
         valid = pair.valid > 0
         if valid.any():
-            errs.append(float(np.linalg.norm(pair.flow - np.load(f), axis=-1)[valid].mean()))
+            from ..data.flo import read_flow_file
+            gt = read_flow_file(f)          # one-line errors naming the file for a damaged one
+            if gt.shape != pair.flow.shape:
+                from ..errors import DataError
+                raise DataError(f"{f}: ground-truth flow is {list(gt.shape)}, the frames are {list(pair.flow.shape)}")
+            errs.append(float(np.linalg.norm(pair.flow - gt, axis=-1)[valid].mean()))
     return (float(np.mean(errs)), len(errs)) if errs else None
 
 
@@ -54,8 +59,10 @@ def run(args) -> int:
     from .train import check_downscale_arg, check_downscaled_size
     check_downscale_arg(args.downscale)
     check_downscaled_size(args.scene, args.downscale)
-    if args.max_pixels < 0:
-        raise EndowaveError(f"--max-pixels must be at least 0, got {args.max_pixels}")
+    from ..data.flow import MIN_ESTIMATION_PIXELS
+    if args.max_pixels < 0 or 0 < args.max_pixels < MIN_ESTIMATION_PIXELS:
+        raise EndowaveError(f"--max-pixels must be 0 (the frame's size) or at least {MIN_ESTIMATION_PIXELS}, "
+                            f"got {args.max_pixels}")
     scene = load_scene(args.scene, downscale=args.downscale)
     print(f"{args.scene}: {scene.summary()}")
     start = time.perf_counter()

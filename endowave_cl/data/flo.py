@@ -56,6 +56,8 @@ def read_flow_file(path) -> np.ndarray:
             flow = np.load(path, allow_pickle=False)
         except Exception as e:
             raise DataError(f"{path}: not a readable .npy file ({e})") from None
+        if flow.dtype.kind not in "fiu":
+            raise DataError(f"{path}: flow must hold numbers, got dtype {flow.dtype}")
         if flow.ndim != 3 or flow.shape[2] != 2:
             raise DataError(f"{path}: expected flow of shape (H, W, 2), got {flow.shape}")
         flow = flow.astype(np.float32)

@@ -55,6 +55,14 @@ TISSUE_KEEP = 0.999
 # tool masks are grown by this many pixels before use: estimators blur motion boundaries and the
 # mask edge is only known to the nearest pixel
 TOOL_MARGIN = 1
+# the estimators need frames of some size: DIS fails below its 8-pixel patches plus a margin; a
+# flow_max_pixels under this many is refused (train/config.py, the flow command) and no side of
+# the estimation size goes under MIN_ESTIMATION_SIDE
+MIN_ESTIMATION_PIXELS = 256
+MIN_ESTIMATION_SIDE = 16
+# user and ground-truth flow vectors longer than this many frame sizes are refused (a flow that
+# carries every pixel far out of the frame is a unit or format mistake, not motion)
+MAX_FLOW_FRAMES = 2.0
 
 
 @dataclass
@@ -201,8 +209,9 @@ def estimation_size(width: int, height: int, max_pixels: int = 0):
     ``max_pixels`` > 0 the largest size of the same aspect with at most that many pixels."""
     if max_pixels <= 0 or width * height <= max_pixels:
         return width, height
-    f = (max_pixels / float(width * height)) ** 0.5
-    return max(8, int(width * f)), max(8, int(height * f))
+    f = (max(max_pixels, MIN_ESTIMATION_PIXELS) / float(width * height)) ** 0.5
+    return (min(width, max(MIN_ESTIMATION_SIDE, int(width * f))),
+            min(height, max(MIN_ESTIMATION_SIDE, int(height * f))))
 
 
 def _grey_at(image: np.ndarray, size) -> np.ndarray:
@@ -242,20 +251,47 @@ def _pair_file(k, k2):
 
 
 def _load_cached(entry: Path, pairs):
+    import sys
+    import zipfile
+    import zlib
     if not (entry / "manifest.json").is_file():
         return None
     out = {}
-    try:
-        for k, k2 in pairs:
-            with np.load(entry / _pair_file(k, k2), allow_pickle=False) as z:
-                out[k] = FlowPair(k, k2, z["flow"], z["valid"].astype(np.float32),
-                                  z["flow_bw"], z["valid_bw"].astype(np.float32))
-    except (OSError, KeyError, ValueError):
-        return None          # damaged entry: recompute and replace it
+    for k, k2 in pairs:
+        f = entry / _pair_file(k, k2)
+        try:
+            with np.load(f, allow_pickle=False) as z:
+                p = FlowPair(k, k2, z["flow"], z["valid"].astype(np.float32),
+                             z["flow_bw"], z["valid_bw"].astype(np.float32))
+            hw = p.flow.shape[:2]
+            if not (p.flow.ndim == 3 and p.flow.shape[2] == 2 and p.flow_bw.shape == p.flow.shape
+                    and p.valid.shape == hw and p.valid_bw.shape == hw
+                    and np.isfinite(p.flow).all() and np.isfinite(p.flow_bw).all()):
+                raise ValueError("arrays of the wrong shape or non-finite values")
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+            # damaged entry (truncated, bit-flipped): say which file, recompute and replace it
+            why = getattr(e, "strerror", None) or str(e).splitlines()[0] if str(e) else type(e).__name__
+            print(f"warning: flow cache file {f} is damaged ({why}); recomputing the entry", file=sys.stderr)
+            return None
+        out[k] = p
     return out
 
 
-def _store(entry: Path, result, meta):
+def _store(entry: Path, result, meta) -> bool:
+    """Write the cache entry; False (with a warning naming the folder) when it cannot be written:
+    the flow just computed is used all the same."""
+    import sys
+    try:
+        _store_entry(entry, result, meta)
+        return True
+    except OSError as e:
+        print(f"warning: cannot write the flow cache in {entry.parent} ({e.strerror or e}); continuing without "
+              f"caching (free space there, or choose another place with --cache-dir or ENDOWAVE_CL_CACHE)",
+              file=sys.stderr)
+        return False
+
+
+def _store_entry(entry: Path, result, meta):
     with atomic_directory(entry, force=True) as tmp:
         for p in result.values():
             np.savez(tmp / _pair_file(p.src, p.dst), flow=p.flow, flow_bw=p.flow_bw,
@@ -275,10 +311,19 @@ def _user_flow_file(folder: Path, a: str, b: str) -> Optional[Path]:
 def _fit_to_scene(flow, path, scene):
     """Resize user flow [h, w, 2] to the scene size, scaling the vectors with the image."""
     h, w = flow.shape[:2]
+    if not np.isfinite(flow).all():
+        raise DataError(f"{path}: flow contains NaN or infinite values")
+    big = float(np.abs(flow).max()) if flow.size else 0.0
+    if big > MAX_FLOW_FRAMES * max(w, h):
+        raise DataError(f"{path}: flow vectors up to {big:.3g} pixels, beyond {MAX_FLOW_FRAMES:g}x the {w}x{h} "
+                        f"frame (flow is in pixels of that frame)")
     if (h, w) == (scene.height, scene.width):
         return flow
+    # the images' own size (the loader's rounding of a downscale), whatever the two ratios are
+    ds = getattr(scene, "downscale", 1.0) or 1.0
+    full = (int(round(w / ds)), int(round(h / ds))) == (scene.width, scene.height)
     sx, sy = scene.width / w, scene.height / h
-    if abs(sx - sy) > 0.02 * max(sx, sy):
+    if not full and abs(sx - sy) > 0.02 * max(sx, sy):
         raise DataError(f"{path}: flow is {w}x{h}, which does not scale to the {scene.width}x{scene.height} frames")
     return _to_frame_size(flow, scene.width, scene.height)
 
@@ -346,9 +391,8 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
         m0, m1 = scene.frames[k].mask, scene.frames[k2].mask
         result[k] = FlowPair(k, k2, fw, valid_mask(fw, bw, m0, m1), bw, valid_mask(bw, fw, m1, m0))
     result.method, result.computed = method, True
-    if cache:
-        _store(entry, result, {"scene": str(scene.path), "method": method, "pairs": pairs,
-                               "size": [scene.width, scene.height], "estimated_at": list(work),
-                               "version": CACHE_VERSION})
+    if cache and _store(entry, result, {"scene": str(scene.path), "method": method, "pairs": pairs,
+                                        "size": [scene.width, scene.height], "estimated_at": list(work),
+                                        "version": CACHE_VERSION}):
         result.cache_path = entry
     return result

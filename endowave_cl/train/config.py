@@ -447,6 +447,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         if getattr(cfg, name) != want:
             raise EndowaveError(f"{source}: key '{name}' must be {want} (the model layout is fixed in this "
                                 f"version; other values are not implemented), got {getattr(cfg, name)}")
+    from ..data.flow import MIN_ESTIMATION_PIXELS
+    if 0 < cfg.flow_max_pixels < MIN_ESTIMATION_PIXELS:     # the estimators fail on smaller frames (issue 57)
+        raise EndowaveError(f"{source}: key 'flow_max_pixels' must be 0 (the frame's size) or at least "
+                            f"{MIN_ESTIMATION_PIXELS}, got {cfg.flow_max_pixels}")
     if cfg.recipe not in RECIPES:
         raise EndowaveError(f"{source}: key 'recipe' must be one of {', '.join(RECIPES)}, got {cfg.recipe!r}")
     from ..data.scene import SPLITS
