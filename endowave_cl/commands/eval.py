@@ -96,4 +96,7 @@ def run(args) -> int:
     path = Path(args.run) / "eval.json"
     write_json_atomic(path, m)      # strict JSON: PSNR inf (a frame rendered exactly) and NaN become null
     print(f"wrote {path}, {m['per_frame_plot']}, {m['worst_frame_image']} (worst test frame {m['worst_frame']})")
+    curves = [Path(args.run) / n for n in ("train_curves.png", "train_curves.csv", "tensorboard")]
+    if any(p.exists() for p in curves):        # written by train (train/curves.py)
+        print("training curves: " + ", ".join(str(p) for p in curves if p.exists()))
     return 0

@@ -33,7 +33,8 @@ from ..checkpoint import checkpoints_by_step, load_newest_good_checkpoint
 LOCK_NAME = ".lock"
 PREVIOUS_RUN = "previous_run"
 # what a run writes into its folder; --restart moves these to previous_run/
-RUN_OUTPUTS = ("config.json", "train_log.json", "eval.json", "render")
+RUN_OUTPUTS = ("config.json", "train_log.json", "eval.json", "render", "train_curves.csv", "train_curves.png",
+               "tensorboard")
 RUN_OUTPUT_GLOBS = ("checkpoint_*.npz", "checkpoint_*.npz.corrupt", "model_t*.ply")
 # temporaries of files only `train` writes in a run folder: under the lock they are stale whatever
 # their pid (this also catches the pid-less names of earlier versions)

@@ -399,6 +399,19 @@ class Trainer:
         before = loop_build0 - self._build0
         return max(0.0, loop_seconds - excess - later), before + excess + later
 
+    def _write_curves(self, tb, png: bool = False) -> None:
+        """RUN/train_curves.csv (and the newest row to TensorBoard; with png, train_curves.png):
+        train/curves.py.  A curve file that cannot be written costs a line, not the run."""
+        from . import curves
+        try:
+            if tb is not None and self.history:
+                tb.add(self.history[-1])
+            curves.write_csv(self.run_dir, self.history)
+            if png:
+                curves.write_png(self.run_dir, self.history, title=f"{self.run_dir.name}: {self.scene.path}")
+        except (OSError, ValueError) as e:
+            self.log(f"training curves not written: {e}")
+
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
         from ..progress import hold_rate, progress as progress_bar, restart_rate
@@ -411,6 +424,8 @@ class Trainer:
         eta_from = self.step + ETA_WARMUP_STEPS   # the rate and time left count the steps after these
         hold_rate(bar)
         budget = self._start_budget()
+        from .curves import TensorBoard
+        tb = TensorBoard(self.run_dir, self.step)   # scalars when tensorboard is installed; the CSV always
         step_times: List[float] = []
         ema = self._run.ema                  # restored on resume
         while self.step < c.iterations:
@@ -438,7 +453,9 @@ class Trainer:
             if (s % c.log_every == 0 or s == c.iterations) and ema is not None:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
                 self.history.append({"step": s, **{k2: float(v) for k2, v in ema.items()},
-                                     "gaussians": len(self.params["means"])})
+                                     "gaussians": len(self.params["means"]),
+                                     "step_ms": 1e3 * float(np.median(step_times[-c.log_every:]))})
+                self._write_curves(tb)
             self._run.after_step(self, s, ema)   # divergence guard (PSNR collapse; parameters at log steps)
             if c.eval_every and s % c.eval_every == 0 and s < c.iterations:
                 m = self.evaluate()
@@ -457,5 +474,7 @@ class Trainer:
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds,
                         "build_seconds": build_seconds})
+        tb.close()
+        self._write_curves(None, png=True)
         self._run.finish(self, metrics)     # train_log.json (strict JSON), release the run folder lock
         return metrics
