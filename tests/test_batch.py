@@ -255,7 +255,8 @@ def _check_complete_run(m, res, text):
     assert mean["scene"] == "mean (3 scenes)"
     assert mean["psnr"] == pytest.approx(sum(rows[f"s{i}"]["psnr"] for i in range(3)) / 3)
     csv_lines = (m.root / "report.csv").read_text().splitlines()
-    assert len(csv_lines) == 1 + 4 + 1 and csv_lines[-1].startswith("mean (3 scenes),mean,")
+    assert len(csv_lines) == 1 + 4 + 2 and csv_lines[-2].startswith("mean (3 scenes),mean,")
+    assert csv_lines[-1].startswith("std (3 scenes),std,")
     md = (m.root / "report.md").read_text()
     assert "| **mean (3 scenes)** |" in md and "| s0 |" in md
     return rows

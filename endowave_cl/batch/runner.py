@@ -193,11 +193,14 @@ class Runner:
         states = [t.state for t in self.tasks.values()]
         n = len(states)
         finished = sum(s in ("done", "ok", "error", "failed", "skipped") for s in states)
+        # submitted tasks that have begun, apart from those waiting for a worker or resources
+        submitted = [t for t in self.tasks.values() if t.state == "running"]
+        started = sum(self._started(t) for t in submitted)
         width = 20
         bar = "#" * int(round(width * finished / n)) if n else ""
         return (f"batch [{bar:<{width}}] {finished}/{n} tasks: {states.count('done')} complete before, "
                 f"{states.count('ok')} done now, {states.count('error') + states.count('failed')} failed, "
-                f"{states.count('skipped')} not run, {states.count('running')} running, "
+                f"{states.count('skipped')} not run, {started} running, {len(submitted) - started} queued, "
                 f"{states.count('todo')} waiting; {_fmt_time(time.time() - t0)} elapsed")
 
     def run(self) -> BatchResult:
