@@ -68,8 +68,8 @@ def run(args) -> int:
     try:
         import viser  # noqa: F401
     except ImportError:
-        raise EndowaveError("the viewer needs viser: pip install -c constraints.txt \"endowave-cl[viewer]\" "
-                            "(or pip install viser)") from None
+        raise EndowaveError("the viewer needs viser: in a checkout of endowave-cl, pip install -c constraints.txt "
+                            "\".[viewer]\" (elsewhere: pip install \"viser>=1.1\")") from None
 
     from ..run_io import load_run
     from ..runtime import get_runtime
