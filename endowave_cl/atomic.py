@@ -149,6 +149,10 @@ def atomic_directory(final, force: bool = False):
         if any(final.iterdir()) and not force:
             raise DataError(f"{final}: folder is not empty (use --force to replace it)")
     final.parent.mkdir(parents=True, exist_ok=True)
+    for stale in stale_temporaries(final.parent):    # of a writer of this folder that was killed
+        m = TEMP_RE.match(stale.name)
+        if m and m.group("name") == final.name and stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
     try:
         os.chmod(tmp, 0o777 & ~_umask())   # mkdtemp's 0700 would make the finished folder private

@@ -295,3 +295,102 @@ def test_user_flow_with_absurd_vectors_is_named(flow_scene, tmp_path, value):
     np.save(bad, np.full((48, 64, 2), value, np.float32))
     with pytest.raises(DataError, match=bad.name):
         flow_for_scene(load_scene(s2), progress=False)
+
+
+# ------------------------------------------------------------------ scene folders (items 4, 10, 13, 18, 19)
+def test_unpadded_frame_numbers_load_in_numeric_order(tmp_path):
+    import numpy as np
+    from endowave_cl.data import load_scene
+    from endowave_cl.data.images import list_images
+    from endowave_cl.data.synth import make_synthetic_scene
+    s = tmp_path / "s"
+    make_synthetic_scene(s, width=32, height=24, frames=12, seed=1)
+    ref = load_scene(s)
+    for sub in ("images", "depth", "masks"):
+        for p in (s / sub).glob("*.png"):
+            p.rename(p.with_name(f"{int(p.stem)}.png"))          # 0.png ... 11.png
+    got = load_scene(s)
+    assert [f.name for f in got.frames] == [str(i) for i in range(12)]
+    for a, b in zip(ref.frames, got.frames):
+        np.testing.assert_array_equal(a.image, b.image)
+    assert [p.name for p in list_images(s / "images")][:4] == ["0.png", "1.png", "2.png", "3.png"]
+
+
+def _scene_copy(flow_scene, tmp_path, masks_all_tool=(), depth=True, depth_scale=None):
+    import json
+    import shutil
+    import cv2
+    import numpy as np
+    s = tmp_path / "s"
+    shutil.copytree(flow_scene, s)
+    files = sorted((s / "masks").glob("*.png"))
+    for i in masks_all_tool:
+        cv2.imwrite(str(files[i]), np.full((48, 64), 255, np.uint8))       # 255 = tool
+    if not depth:
+        shutil.rmtree(s / "depth")
+    if depth_scale is not None:
+        info = json.loads((s / "scene.json").read_text())
+        info["depth_scale"] = depth_scale
+        (s / "scene.json").write_text(json.dumps(info))
+    return s
+
+
+@pytest.mark.parametrize("tool,depth,words", [
+    ((1,), True, ["masks/000001.png", "test frame 1 is all tool"]),
+    (tuple(range(6)), False, ["test frame 1 is all tool"]),
+    ((0, 2, 3, 4, 5), False, ["every training frame's mask is all tool"]),
+])
+def test_all_tool_masks_are_refused_before_training(flow_scene, tmp_path, tool, depth, words):
+    s = _scene_copy(flow_scene, tmp_path, tool, depth)
+    rc, out, err = _main("train", s, "--out", tmp_path / "r", "--iterations", "50", "--quiet", "--no-flow")
+    line = _one_line(rc, err, *words)
+    assert "depth" not in line.replace("depth/", "")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("value", [1e-300, 1e300, float("inf"), True, -1, 0, "2"])
+def test_depth_scale_out_of_range_is_named(flow_scene, tmp_path, value):
+    s = _scene_copy(flow_scene, tmp_path, depth_scale=value)
+    rc, out, err = _main("train", s, "--out", tmp_path / "r", "--iterations", "50", "--quiet")
+    _one_line(rc, err, "scene.json", "depth_scale")
+
+
+def test_init_blames_masks_not_depth_without_depth():
+    import numpy as np
+    from types import SimpleNamespace
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.init import init_gaussians
+    from endowave_cl.camera import Camera
+    cam = Camera(40.0, 40.0, 16.0, 12.0, 32, 24, np.eye(4))
+    fr = SimpleNamespace(image=np.zeros((24, 32, 3), np.float32), depth=None, mask=np.zeros((24, 32), np.float32),
+                         camera=cam, time=0.0)
+    with pytest.raises(EndowaveError, match="no training pixel is tissue"):
+        init_gaussians([fr, fr], [0, 1], 1.0, 10.0, 100)
+
+
+# ------------------------------------------------------------------ synth (items 7, 22)
+@pytest.mark.parametrize("args,words", [
+    (["--deformation", "inf"], ["--deformation", "got inf"]),
+    (["--deformation", "nan"], ["--deformation"]),
+    (["--deformation", "-1"], ["--deformation"]),
+    (["--deformation", "10", "--width", "32", "--height", "24", "--frames", "4"], ["--deformation 10", "smaller"]),
+    (["--seed", "-1"], ["--seed", "got -1"]),
+    (["--width", "100000"], ["too large"]),
+    (["--frames", "1"], ["--frames"]),
+])
+def test_synth_parameters_are_named_and_nothing_is_left(tmp_path, args, words):
+    t0 = time.perf_counter()
+    rc, _, err = _main("synth", tmp_path / "out", *args)
+    line = _one_line(rc, err, *words)
+    assert str(tmp_path / "out") not in line
+    assert time.perf_counter() - t0 < 30
+    assert list(tmp_path.iterdir()) == []                       # no folder, no hidden temporary
+
+
+def test_synth_removes_a_killed_writers_temporary(tmp_path):
+    stale = tmp_path / ".out.999999999.abc.tmp"                 # pid that cannot exist
+    stale.mkdir()
+    (stale / "images").mkdir()
+    rc, _, err = _main("synth", tmp_path / "out", "--width", "32", "--height", "24", "--frames", "3")
+    assert rc == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -82,6 +82,8 @@ def run(args) -> int:
         n = len(r.scene.frames)
         raise EndowaveError(f"{r.scene.path}: {n} frame(s) and no test frame to evaluate (test frames are "
                             f"1, {1 + TEST_EVERY}, {1 + 2 * TEST_EVERY}, ...: eval needs at least 2 frames)")
+    from ..data.scene import check_supervised
+    check_supervised(r.scene, r.scene.split)   # a frame whose mask is all tool cannot be scored (issue 57)
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
     m = evaluate_run(rt, params, r.scene, args.fps_runs, with_baselines=not args.no_baselines, with_train_fit=True)

@@ -30,8 +30,8 @@ def run(args) -> int:
     try:
         out = make_synthetic_scene(args.out, width=args.width, height=args.height, frames=args.frames,
                                    seed=args.seed, deformation=args.deformation, force=args.force)
-    except ValueError as e:
-        raise DataError(f"{args.out}: {e}") from None
+    except ValueError as e:    # a parameter out of range: the message names the option, not the folder
+        raise DataError(f"{e}") from None
     scene = load_scene(out)
     print(f"{out}: {scene.summary()} ({time.perf_counter() - start:.1f} s)")
     return 0

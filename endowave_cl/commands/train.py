@@ -189,6 +189,8 @@ def run(args) -> int:
         raise EndowaveError(f"{scene_path}: {len(scene.frames)} frame(s) give {len(scene.train_indices)} "
                             f"training and {len(scene.test_indices)} test frames; training needs at least "
                             f"one of each (at least 2 frames: frame 1 is the first test frame)")
+    from ..data.scene import check_supervised
+    check_supervised(scene, scene.split)      # masks leave something to train on and to score (issue 57)
     from ..evaluation import flow_references
     flow_references(scene)   # gt_flow/ read and checked now, not after training (issue 57); kept for the end
     if not scene.has_depth:

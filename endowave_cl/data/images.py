@@ -11,9 +11,19 @@ from ..errors import DataError
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
+def natural_key(name: str):
+    """Sort key that orders the numbers in a name by value: 0, 1, 2, ..., 10, 11 (not 0, 1, 10, 11,
+    2); zero-padded names sort as before.  The name itself breaks ties (01 / 1)."""
+    import re
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
+
+
 def list_images(folder: Path) -> list:
-    """Image files of ``folder`` sorted by name (frames are paired across folders by this order)."""
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    """Image files of ``folder`` in frame order: by name, numbers by value (natural_key); frames are
+    paired across folders by this order."""
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                  key=lambda p: natural_key(p.name))
 
 
 def _decode(path: Path, flags: int) -> np.ndarray:

@@ -30,6 +30,9 @@ from .llff import HWF_LAYOUTS, intrinsics_from_hwf, llff_to_viewmat, read_poses_
 # EndoNeRF-style loaders (EndoNeRF, Deform3DGS) clip each depth map to these percentiles of its
 # valid pixels to drop stereo-matching outliers.
 DEFAULT_DEPTH_PERCENTILES = (3.0, 99.8)
+# scene.json depth_scale (scene units per raw depth count): values outside this range are unit
+# mistakes, and their products with 16-bit counts leave float32 (0 or inf)
+DEPTH_SCALE_RANGE = (1e-9, 1e9)
 # Every TEST_EVERY-th frame starting at frame 1 is a test frame: (i - 1) % 8 == 0.
 TEST_EVERY = 8
 # The validation split (for choosing settings without reading a test frame): the training frames
@@ -126,6 +129,23 @@ class Scene:
         return float(np.ptp(centres, axis=0).max()) <= VIEWPOINT_TOL * max(1.0, abs(self.far))
 
 
+def check_supervised(scene, scored: str = "test") -> None:
+    """Refuse masks that leave nothing to train or score, before any work: every scored frame needs
+    a tissue pixel (PSNR and SSIM are taken over tissue), and some training frame needs one."""
+    if not scene.has_masks:
+        return
+    from .images import list_images
+    files = list_images(Path(scene.path) / "masks")
+    where = f" (downscale {scene.downscale:g})" if scene.downscale != 1 else ""
+    for i in scene.test_indices:
+        if not np.any(scene.frames[i].mask > 0.5):
+            raise DataError(f"{files[i] if i < len(files) else scene.path}: the mask of {scored} frame {i} is all tool"
+                            f"{where}: no tissue pixel to score it on")
+    if scene.train_indices and not any(np.any(scene.frames[i].mask > 0.5) for i in scene.train_indices):
+        raise DataError(f"{Path(scene.path) / 'masks'}: every training frame's mask is all tool{where}: no "
+                        f"tissue pixel to train on")
+
+
 def split_indices(n: int, test_every: int = TEST_EVERY):
     """EndoNeRF split: frames with (i - 1) % test_every == 0 are test frames, the rest train."""
     test = [i for i in range(n) if (i - 1) % test_every == 0]
@@ -167,8 +187,10 @@ def _read_scene_json(path: Path) -> dict:
         raise DataError(f"{f}: expected a JSON object")
     if "depth_scale" in info:
         s = info["depth_scale"]
-        if not isinstance(s, (int, float)) or not s > 0:
-            raise DataError(f"{f}: depth_scale must be a positive number, got {s!r}")
+        lo, hi = DEPTH_SCALE_RANGE
+        if isinstance(s, bool) or not isinstance(s, (int, float)) or not (lo <= s <= hi):
+            raise DataError(f"{f}: depth_scale must be a positive number from {lo:g} to {hi:g} (scene units per "
+                            f"raw depth count), got {s!r}")
     if "hwf_layout" in info and info["hwf_layout"] not in HWF_LAYOUTS[1:]:
         raise DataError(f"{f}: hwf_layout must be one of {HWF_LAYOUTS[1:]}, got {info['hwf_layout']!r}")
     return info
@@ -367,5 +389,11 @@ def _read_depth(file: Path, width: int, height: int, depth_scale, depth_percenti
     if not np.any(depth > 0):
         raise DataError(f"{file}: depth map has no valid (non-zero) pixel")
     if depth_scale is not None:
-        depth = depth * np.float32(depth_scale)
+        raw = depth
+        with np.errstate(over="ignore", under="ignore"):
+            depth = depth * np.float32(depth_scale)
+        lost = (raw > 0) & ~(np.isfinite(depth) & (depth > 0))
+        if lost.any():
+            raise DataError(f"{file}: depth_scale {depth_scale:g} (scene.json) takes raw depth {float(raw[lost][0]):g} "
+                            f"to {float(depth[lost][0]):g}, outside float32; check the scale")
     return clip_depth(depth, depth_percentiles)

@@ -123,7 +123,9 @@ class _Scene:
             wx, wy = self.warp(px, py, t1)
             px, py = mx + wx, my + wy
         rx, ry = self.material(px, py, t1)
-        assert max(np.abs(rx - mx).max(), np.abs(ry - my).max()) < 1e-4, "warp inversion did not converge"
+        if not max(np.abs(rx - mx).max(), np.abs(ry - my).max()) < 1e-4:
+            raise ValueError(f"--deformation {self.deformation:g} folds the tissue over itself at this size and "
+                             f"seed (its warp has no inverse); use a smaller one (the default is 1)")
         return np.stack([px - self.u, py - self.v], -1)
 
     # --- tool ---------------------------------------------------------------------------
@@ -272,6 +274,13 @@ def _vessel_texture(rng, width, height):
     return np.clip(tissue * (1 - v) + vessel * v, 0, 1).astype(np.float32)
 
 
+# limits of the generator's parameters: a larger deformation folds the tissue (no inverse warp; inf
+# hung in cv2.remap), larger frames exhaust memory
+MAX_DEFORMATION = 10.0
+MAX_SIDE = 8192
+MAX_PIXELS = 2e9
+
+
 def make_synthetic_scene(out, width: int = 160, height: int = 128, frames: int = 24, seed: int = 0,
                          deformation: float = 1.0, force: bool = False) -> Path:
     """Generate a synthetic scene in ``out`` (see the module docstring) and return its path.
@@ -279,12 +288,18 @@ def make_synthetic_scene(out, width: int = 160, height: int = 128, frames: int =
     ``out`` must be absent or empty unless ``force``; nothing is half-written (temporary folder
     + rename).  Raises DataError for a non-empty ``out`` and ValueError for bad parameters.
     """
+    import math
     if width < 16 or height < 16:
-        raise ValueError(f"size {width}x{height} is too small (at least 16x16)")
+        raise ValueError(f"--width / --height {width}x{height} is too small (at least 16x16)")
+    if max(width, height) > MAX_SIDE or width * height * frames > MAX_PIXELS:
+        raise ValueError(f"{width}x{height} x {frames} frames is too large (at most {MAX_SIDE} pixels a side and "
+                         f"{MAX_PIXELS:.0e} pixels in all)")
     if frames < 2:
-        raise ValueError(f"need at least 2 frames, got {frames}")
-    if not deformation >= 0:
-        raise ValueError(f"deformation must be >= 0, got {deformation}")
+        raise ValueError(f"--frames: need at least 2 frames, got {frames}")
+    if not (math.isfinite(deformation) and 0 <= deformation <= MAX_DEFORMATION):
+        raise ValueError(f"--deformation must be a number from 0 to {MAX_DEFORMATION:g}, got {deformation}")
+    if not 0 <= seed < 2 ** 63:
+        raise ValueError(f"--seed must be a whole number from 0 to 2**63 - 1, got {seed}")
     out = Path(out)
     sc = _Scene(width, height, frames, seed, deformation)
     with atomic_directory(out, force=force) as tmp:

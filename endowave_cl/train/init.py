@@ -97,6 +97,8 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     counts = np.array([v[0].size for v in valid], np.int64)   # [F]
     total = int(counts.sum())
     if total == 0:
+        if all(frames[k].depth is None for k in idx):   # no depth used: only the masks can be at fault
+            raise EndowaveError("init: no training pixel is tissue (every mask pixel is tool)")
         raise EndowaveError("init: no training pixel has a valid depth inside the tissue mask")
     rng = np.random.default_rng(seed)
     n_keep = min(int(max_points), total)
