@@ -394,3 +394,23 @@ def test_synth_removes_a_killed_writers_temporary(tmp_path):
     rc, _, err = _main("synth", tmp_path / "out", "--width", "32", "--height", "24", "--frames", "3")
     assert rc == 0, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+# ------------------------------------------------------------------ render (item 21)
+@pytest.mark.parametrize("fps", ["1e-9", "1e9", "0.01"])
+def test_render_fps_the_encoders_cannot_write_is_refused_up_front(own_run, fps):
+    scene, run = own_run
+    rc, out, err = _main("render", run, "--fps", fps)
+    _one_line(rc, err, "--fps must be from 0.1 to 1000")
+    assert "render:" not in out
+
+
+def test_render_video_failure_is_one_warning_line(own_run, monkeypatch):
+    from endowave_cl import video
+
+    def broken(path, frames, fps, codec=None):
+        raise OSError("FFMPEG STDERR OUTPUT:\nboom: cannot encode\nmore noise")
+    monkeypatch.setattr(video, "write_video", broken)
+    scene, run = own_run
+    rc, out, err = _main("render", run, "--fps", "5")
+    assert rc == 0 and err.strip() == "warning: video not written (boom: cannot encode); the frames are written as PNG"

@@ -4,12 +4,16 @@ frame in time order (H.264 in MP4, which browsers play), written under RUN/rende
 written to a temporary name and renamed)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 
 DEPTH_PNG_SCALE = 1000.0   # 16-bit depth PNGs store depth x 1000 in the units of the scene's files
                            # (millimetres when they are in metres)
+
+
+FPS_RANGE = (0.1, 1000.0)  # video frame rates both encoders (H.264, mp4v) write
 
 
 def add_arguments(p) -> None:
@@ -32,6 +36,8 @@ def run(args) -> int:
     from ..errors import EndowaveError
     if not (math.isfinite(args.fps) and args.fps > 0):
         raise EndowaveError(f"--fps must be a positive number, got {args.fps}")
+    if not (args.no_video or FPS_RANGE[0] <= args.fps <= FPS_RANGE[1]):   # the encoders fail outside it (issue 57)
+        raise EndowaveError(f"--fps must be from {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} frames per second, got {args.fps:g}")
     r = load_run(args.run, args.scene)
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
@@ -71,7 +77,8 @@ def run(args) -> int:
         try:
             codec = write_video(path, video_frames, args.fps)
         except (OSError, ValueError, RuntimeError) as e:
-            print(f"video: not written ({e}); the frames are written as PNG")
+            why = next((ln.strip() for ln in str(e).splitlines() if ln.strip() and "STDERR" not in ln), type(e).__name__)
+            print(f"warning: video not written ({why}); the frames are written as PNG", file=sys.stderr)
         else:
             what = "H.264" if codec == "h264" else ("MPEG-4 Part 2: imageio-ffmpeg is missing, so browsers "
                                                     "will not play it; pip install imageio-ffmpeg")
