@@ -5,6 +5,7 @@
     python tools/validate.py --tag nogate --set between_model=0 --seeds 0,1 --minutes 6
     python tools/validate.py --tag paper --recipe paper --minutes 6 --scenes traction,pushing
     python tools/validate.py --tag default --summary            # print what is there, train nothing
+    python tools/validate.py --tag report --test --minutes 15 --seeds 0,1,2   # the report, once
 
 The protocol (docs/VALIDATION.md): each run trains with ``--validation``: the validation frames
 ((i - 5) % 8 == 0, midway between two test frames, each with training frames on both sides, as a
@@ -12,7 +13,7 @@ test frame has) are held out of training along with the test frames, and ``endow
 scores the validation frames with the same function as the test frames, beside every interpolation
 baseline (neighbour mean, DIS bilinear and bicubic, the in-between teacher) on the same frames.
 Defaults are chosen on these figures across every scene; the test frames are read once, for the
-report.
+report (``--test``: the usual split, the test frames scored; use a tag of its own).
 
 Scenes (--scenes, comma-separated): pulling (the EndoNeRF pulling frames at --downscale 2),
 traction and pushing (shared/data/endonerf_clips, 320x256), synth (a 320x256 synthetic scene of 48
@@ -75,8 +76,8 @@ def train_and_eval(name: str, seed: int, a, shared: Path, base: Path) -> Path:
     run.mkdir(parents=True, exist_ok=True)
     log = run.parent / f"{run.name}.log"
     scene = scene_path(name, shared, base.parent, log)
-    cmd = _cli("train", scene, "--out", run, "--validation", "--quiet", "--downscale", SCENES[name][1],
-               "--set", f"seed={seed}")
+    cmd = _cli("train", scene, "--out", run, *([] if a.test else ["--validation"]), "--quiet",
+               "--downscale", SCENES[name][1], "--set", f"seed={seed}")
     if a.recipe:
         cmd += ["--recipe", a.recipe]
     if a.minutes:
@@ -106,14 +107,25 @@ def compressed_schedule(a) -> list:
     return [f"iterations={a.steps}"] + [f"{k}={v}" for k, v in keys.items()]
 
 
-def read_eval(run: Path) -> dict:
+def read_eval(run: Path, split: str) -> dict:
     m = json.loads((run / "eval.json").read_text())
-    if m.get("split") != "validation":
-        raise SystemExit(f"validate: error: {run}/eval.json scores the {m.get('split', 'test')} frames; "
-                         f"this tool prints validation figures only")
+    if m.get("split", "test") != split:
+        raise SystemExit(f"validate: error: {run}/eval.json scores the {m.get('split', 'test')} frames, not the "
+                         f"{split} frames (--test reads the test frames, for the final report only)")
     log = json.loads((run / "train_log.json").read_text()) if (run / "train_log.json").is_file() else {}
     m["train_seconds"] = (log.get("final") or {}).get("train_seconds", log.get("train_seconds"))
     return m
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def _fmt(v, spec=".2f") -> str:
@@ -135,6 +147,9 @@ def main(argv=None) -> int:
                                               "keep their share)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="train's --set (repeatable)")
     ap.add_argument("--summary", action="store_true", help="train nothing: summarise the runs already there")
+    ap.add_argument("--test", action="store_true",
+                    help="the final report: train on the usual split and score the TEST frames (read them once, "
+                         "with the settings already chosen on validation figures; docs/VALIDATION.md)")
     a = ap.parse_args(argv)
     names = [s.strip() for s in a.scenes.split(",") if s.strip()]
     bad = [s for s in names if s not in SCENES]
@@ -146,7 +161,7 @@ def main(argv=None) -> int:
         ap.error(f"--seeds: expected comma-separated integers, got {a.seeds!r}")
     shared, base = Path(a.shared), Path(a.out) / a.tag
     base.mkdir(parents=True, exist_ok=True)
-    print(f"validate {a.tag}: host {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load "
+    print(f"validate {a.tag} ({'TEST frames: the final report' if a.test else 'validation frames'}): host {_cpu_name()}, {os.cpu_count()} CPUs, load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; recipe {a.recipe or 'default'}, minutes "
           f"{a.minutes or '-'}, iterations {a.iterations or '-'}, steps {a.steps or '-'}, set {a.set or '-'}", flush=True)
     runs = {}
@@ -163,10 +178,11 @@ def main(argv=None) -> int:
     if not runs:
         print("no finished runs")
         return 1
-    evals = {k: read_eval(r) for k, r in runs.items()}
+    split = "test" if a.test else "validation"
+    evals = {k: read_eval(r, split) for k, r in runs.items()}
     hdr = (f"{'scene':<9} {'seed':>4} {'model':>6} {'masked':>6} {'SSIM':>6} {'LPIPS':>6} | {'teacher':>7} "
            f"{'LPIPS':>6} {'bicubic':>7} {'LPIPS':>6} | {'-teach':>6} {'-best':>6} | {'fit':>6} {'steps':>6} {'sec':>5}")
-    print(f"\nvalidation frames (whole-image PSNR dB unless named; -teach / -best: model minus the teacher / "
+    print(f"\n{split} frames (whole-image PSNR dB unless named; -teach / -best: model minus the teacher / "
           f"the best baseline; fit: PSNR at the training frames)\n{hdr}")
     rows, summary = [], {}
     for (name, seed), m in evals.items():

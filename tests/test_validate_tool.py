@@ -1,0 +1,57 @@
+"""tools/validate.py: it prints validation figures only (a run scored on the test frames is refused
+unless --test asks for the report), per run, per scene and against motion."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+TOOL = Path(__file__).resolve().parents[1] / "tools" / "validate.py"
+
+
+def _scores(psnr, lpips=0.05):
+    return {"psnr": psnr, "psnr_masked": psnr, "ssim": 0.9, "lpips": lpips}
+
+
+def _fake_run(folder: Path, split: str, model: float, teacher: float, motion: float):
+    folder.mkdir(parents=True)
+    per = [{"index": 5, "motion": motion, "model": _scores(model), "teacher": _scores(teacher)}]
+    base = {n: _scores(v) for n, v in (("mean", 30.0), ("dis", 33.0), ("dis_cubic", 33.5), ("teacher", teacher))}
+    m = {**_scores(model), "split": split, "baselines": base, "step": 100, "per_frame": per,
+         "margin": {"over": "teacher", "psnr": model - teacher}, "margin_teacher": {"psnr": model - teacher},
+         "train_fit": {"psnr": 40.0, "frames": 5}}
+    (folder / "eval.json").write_text(json.dumps(m))
+    (folder / "train_log.json").write_text(json.dumps({"final": {"train_seconds": 12.0}}))
+
+
+def _tool(*args):
+    return subprocess.run([sys.executable, str(TOOL), *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def test_summary_of_validation_runs(tmp_path):
+    _fake_run(tmp_path / "cand" / "traction_s0", "validation", 35.0, 36.0, 0.3)
+    _fake_run(tmp_path / "cand" / "traction_s1", "validation", 36.0, 36.0, 3.0)
+    r = _tool("--tag", "cand", "--out", tmp_path, "--scenes", "traction", "--seeds", "0,1", "--summary",
+              "--shared", tmp_path / "nowhere")
+    assert r.returncode == 1 and "not found, skipped" in r.stdout          # a missing scene is skipped
+    (tmp_path / "shared" / "data" / "endonerf_clips" / "traction").mkdir(parents=True)
+    r = _tool("--tag", "cand", "--out", tmp_path, "--scenes", "traction", "--seeds", "0,1", "--summary",
+              "--shared", tmp_path / "shared")
+    assert r.returncode == 0, r.stderr
+    assert "validation frames" in r.stdout and "traction (2 seeds): psnr 35.500 +- 0.500" in r.stdout
+    assert "margin_teacher -0.500 +- 0.500" in r.stdout
+    assert "motion  0.0-0.5  px:   1 frames, margin -1.00 dB" in r.stdout
+    assert "motion  2.0-4.0  px:   1 frames, margin +0.00 dB" in r.stdout
+    summary = json.loads((tmp_path / "cand" / "summary.json").read_text())
+    assert summary["scenes"]["traction"]["fit"] == 40.0
+
+
+def test_test_frames_are_refused_without_test(tmp_path):
+    (tmp_path / "shared" / "data" / "endonerf_clips" / "pushing").mkdir(parents=True)
+    _fake_run(tmp_path / "x" / "pushing_s0", "test", 35.0, 36.0, 1.0)
+    args = ("--tag", "x", "--out", tmp_path, "--scenes", "pushing", "--summary", "--shared", tmp_path / "shared")
+    r = _tool(*args)
+    assert r.returncode != 0 and "not the validation frames" in r.stderr and "35.00" not in r.stdout
+    r = _tool(*args, "--test")
+    assert r.returncode == 0 and "test frames" in r.stdout
