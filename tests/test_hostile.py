@@ -414,3 +414,70 @@ def test_render_video_failure_is_one_warning_line(own_run, monkeypatch):
     scene, run = own_run
     rc, out, err = _main("render", run, "--fps", "5")
     assert rc == 0 and err.strip() == "warning: video not written (boom: cannot encode); the frames are written as PNG"
+
+
+# ------------------------------------------------------------------ batch (items 6, 8, 9)
+@pytest.mark.parametrize("text,words", [
+    ("[resources]\ncpus = 1e300", ["resources.cpus", "at most 1024"]),
+    ("[resources]\ncpus = 100000", ["resources.cpus"]),
+    ("[render]\nfps = 1e9", ["render.fps", "from 0.1 to 1000"]),
+])
+def test_manifest_resources_out_of_range(tmp_path, text, words):
+    from endowave_cl.batch.manifest import load_manifest
+    from endowave_cl.errors import EndowaveError
+    (tmp_path / "data" / "a").mkdir(parents=True)
+    p = tmp_path / "m.toml"
+    p.write_text('root = "o"\nscenes = ["data/*"]\n' + text)
+    with pytest.raises(EndowaveError) as e:
+        load_manifest(p)
+    for w in words:
+        assert w in str(e.value) and str(p) in str(e.value)
+
+
+def test_task_threads_are_bounded():
+    from types import SimpleNamespace
+    from endowave_cl.batch.tasks import task_env
+    env = task_env(SimpleNamespace(resources={"cpus": 1e300}))
+    assert all(int(env[v]) <= 1024 for v in ("POCL_MAX_PTHREAD_COUNT", "OMP_NUM_THREADS") if v not in os.environ)
+
+
+def test_a_locked_run_folder_is_not_a_sticky_data_error(tmp_path):
+    from endowave_cl.batch import tasks
+    from endowave_cl.train.run_folder import RunLock
+    run = tmp_path / "run"
+    run.mkdir()
+    lock = RunLock(run).acquire()           # an orphaned worker still training
+    try:
+        res = tasks._retire(run)
+        assert res["kind"] == tasks.BUSY_KIND and "in use" in res["error"]
+        res = tasks._run_command(["export", str(run)])       # opens no lock: a data error as before
+        assert res["kind"] == "data"
+    finally:
+        lock.release()
+    assert tasks.BUSY_KIND not in tasks.STICKY_KINDS
+
+
+def test_pool_worker_dies_with_its_driver(tmp_path):
+    """SIGKILL of the driver: its worker notices the new parent and stops (SIGTERM, then exit)."""
+    code = ("import subprocess, sys, time\n"
+            "w = subprocess.Popen([sys.executable, '-c', 'import os, time; from endowave_cl.batch.tasks import "
+            "_die_with_parent; _die_with_parent(os.getppid()); print(os.getpid(), flush=True); time.sleep(120)'],"
+            " stdout=subprocess.PIPE, text=True)\n"
+            "print(w.stdout.readline().strip(), flush=True)\n"
+            "time.sleep(120)\n")
+    driver = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    worker = int(driver.stdout.readline())
+    driver.kill()
+    driver.wait()
+    deadline = time.time() + 20
+    while time.time() < deadline:
+        try:
+            with open(f"/proc/{worker}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":    # exited; its new parent has not reaped it
+                    break
+        except (FileNotFoundError, ProcessLookupError):
+            break
+        time.sleep(0.2)
+    else:
+        os.kill(worker, signal.SIGKILL)
+        pytest.fail("the worker outlived its driver by 20 s")

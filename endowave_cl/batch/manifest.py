@@ -97,19 +97,25 @@ def _options(src: str, table: str, data: dict) -> Dict[str, Any]:
     return out
 
 
+MAX_TASK_CPUS = 1024     # resources.cpus: threads per task (1e300 went into POCL_MAX_PTHREAD_COUNT and crashed)
+
+
 def _check_ranges(src: str, m: Manifest) -> None:
     import math
     r = m.resources
-    if not (math.isfinite(r["cpus"]) and r["cpus"] > 0):
-        raise EndowaveError(f"{src}: key 'resources.cpus' must be > 0, got {r['cpus']}")
+    if not (math.isfinite(r["cpus"]) and 0 < r["cpus"] <= MAX_TASK_CPUS):
+        raise EndowaveError(f"{src}: key 'resources.cpus' must be > 0 and at most {MAX_TASK_CPUS} (CPU cores per "
+                            f"task: PoCL and torch start as many threads), got {r['cpus']:g}")
     if not (math.isfinite(r["gpus"]) and r["gpus"] >= 0):
         raise EndowaveError(f"{src}: key 'resources.gpus' must be >= 0, got {r['gpus']}")
     if r["retries"] < 0:
         raise EndowaveError(f"{src}: key 'resources.retries' must be >= 0, got {r['retries']}")
     if m.eval["fps_runs"] < 0:
         raise EndowaveError(f"{src}: key 'eval.fps_runs' must be >= 0, got {m.eval['fps_runs']}")
-    if not (math.isfinite(m.render["fps"]) and m.render["fps"] > 0):
-        raise EndowaveError(f"{src}: key 'render.fps' must be > 0, got {m.render['fps']}")
+    from ..commands.render import FPS_RANGE      # what render accepts: checked here, before any stage runs
+    if not (math.isfinite(m.render["fps"]) and FPS_RANGE[0] <= m.render["fps"] <= FPS_RANGE[1]):
+        raise EndowaveError(f"{src}: key 'render.fps' must be from {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g}, "
+                            f"got {m.render['fps']:g}")
     if not 0.0 <= m.export["time"] <= 1.0:
         raise EndowaveError(f"{src}: key 'export.time' must be in [0, 1], got {m.export['time']}")
 

@@ -33,6 +33,7 @@ from ..atomic import stale_temporaries, write_json_atomic
 BATCH_DIR = "batch"
 RESULT_PREFIX = "ENDOWAVE_BATCH_RESULT "
 PROGRESS_INTERVAL = 2.0           # seconds between the plain progress lines a task's log gets
+BUSY_KIND = "busy"               # the run folder was locked by another process (an orphaned worker): not sticky
 STICKY_KINDS = ("data",)          # failures a re-run does not repeat while the inputs are unchanged
 
 
@@ -161,7 +162,8 @@ def task_env(manifest) -> Dict[str, str]:
     """Environment of a task's process: plain progress lines (the driver reads them from the log)
     and, for PoCL and torch, as many threads as the task has CPU cores (two tasks on a 2-core
     machine would otherwise each start 2 threads per kernel and contend)."""
-    cores = str(max(1, int(manifest.resources["cpus"])))
+    from .manifest import MAX_TASK_CPUS
+    cores = str(min(MAX_TASK_CPUS, max(1, int(manifest.resources["cpus"]))))
     env = {"ENDOWAVE_PROGRESS": "plain", "ENDOWAVE_PROGRESS_INTERVAL": str(PROGRESS_INTERVAL)}
     # PoCL's CPU thread count: POCL_MAX_PTHREAD_COUNT up to PoCL 4 (the pyopencl wheels' PoCL),
     # POCL_CPU_MAX_CU_NUM from PoCL 5; a value the user set wins
@@ -257,7 +259,9 @@ def _run_command(argv: List[str]) -> Dict[str, Any]:
             return {"ok": False, "kind": "unexpected", "error": f"{name}: exit status {rc}"}
         return {"ok": True}
     except EndowaveError as e:
-        return {"ok": False, "kind": "data", "error": f"{name}: error: {e}"}
+        from ..train.run_folder import RunFolderBusy
+        kind = BUSY_KIND if isinstance(e, RunFolderBusy) else "data"
+        return {"ok": False, "kind": kind, "error": f"{name}: error: {e}"}
     except (OpenCLUnavailable, KernelBuildError) as e:
         return {"ok": False, "kind": "device", "error": f"{name}: error: {e}"}
     except OSError as e:
@@ -278,7 +282,7 @@ def _retire(run_dir: Path) -> Dict[str, Any]:
     ``train --restart`` does), here under the run folder lock and once per batch invocation, so
     that a retried attempt resumes the new run instead of restarting it again."""
     from ..errors import EndowaveError
-    from ..train.run_folder import RunLock, make_run_dir, retire_previous_run
+    from ..train.run_folder import RunFolderBusy, RunLock, make_run_dir, retire_previous_run
     try:
         make_run_dir(run_dir)
         lock = RunLock(run_dir).acquire()
@@ -287,7 +291,8 @@ def _retire(run_dir: Path) -> Dict[str, Any]:
         finally:
             lock.release()
     except EndowaveError as e:
-        return {"ok": False, "kind": "data", "error": f"endowave-cl train: error: {e}"}
+        kind = BUSY_KIND if isinstance(e, RunFolderBusy) else "data"
+        return {"ok": False, "kind": kind, "error": f"endowave-cl train: error: {e}"}
     return {"ok": True}
 
 
@@ -351,8 +356,30 @@ def run_task(spec: dict) -> dict:
     return res
 
 
+PARENT_POLL = 1.0        # seconds between the pool worker's checks that its driver is alive
+PARENT_GRACE = 60.0      # seconds a worker has to save and stop after its driver died, then it exits
+
+
+def _die_with_parent(ppid: int) -> None:
+    """A watchdog thread: when the driver that started this worker is gone (SIGKILL, a crash: the
+    worker is re-parented), SIGTERM ourselves (train saves a checkpoint and stops, as on a
+    Ctrl-C of the driver), and exit outright if that has not ended us within PARENT_GRACE."""
+    import signal
+    import threading
+
+    def watch():
+        while os.getppid() == ppid and ppid != 1:
+            time.sleep(PARENT_POLL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(PARENT_GRACE)
+        os._exit(143)
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
 def main() -> int:
-    """The process pool's worker: a spec as JSON on stdin, the result as the last stdout line."""
+    """The process pool's worker: a spec as JSON on stdin, the result as the last stdout line.
+    It dies with its driver (_die_with_parent)."""
+    _die_with_parent(os.getppid())
     spec = json.loads(sys.stdin.read())
     res = run_task(spec)
     sys.stdout.write(RESULT_PREFIX + json.dumps(res) + "\n")

@@ -91,6 +91,11 @@ def check_not_foreign(run_dir) -> None:
                                 f"it; {run_dir} is not a run folder: use another --out")
 
 
+class RunFolderBusy(EndowaveError):
+    """Another process holds the run folder's lock: a state that passes, not bad input (batch does
+    not record it as a data error that later runs refuse the scene for)."""
+
+
 class RunLock:
     """Exclusive lock on a run folder for one training process.
 
@@ -118,7 +123,7 @@ class RunLock:
                     raise _oserror("lock the run folder", self.path, e) from None
                 holder = self._holder()
                 who = f"pid {holder}" if holder else "another process"
-                raise EndowaveError(f"{self.path.parent}: run folder is in use by another endowave-cl train "
+                raise RunFolderBusy(f"{self.path.parent}: run folder is in use by another endowave-cl train "
                                     f"({who}); wait for it to finish or use another --out") from None
             # the holder may have unlinked the file between our open and flock: lock the file that
             # is at the path now, or try again
