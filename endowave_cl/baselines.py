@@ -13,7 +13,7 @@ report it"): two interpolations between the training frames around each test fra
 - ``dis_cubic``: the same interpolation with bicubic warps (``SAMPLERS``).  At the half-pixel
   offsets of a midway warp bilinear sampling averages two pixels, a low-pass that costs fine
   texture; bicubic sampling keeps more of it (on the pulling frames at 320x256: LPIPS 0.026 against
-  0.039, +0.05 dB; docs/QUALITY.md finding 10).  The stronger of the two interpolators is the bar.
+  0.039, +0.05 dB; research/QUALITY.md finding 10).  The stronger of the two interpolators is the bar.
 
 - ``teacher``: the in-between teacher (train/between.py ``Teacher``): the target that training's
   in-between steps fit at that time, built from the training pair around the test frame as the

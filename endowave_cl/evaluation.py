@@ -145,6 +145,18 @@ def _depth_summary(rows, world_scale: float):
             "frames": len(d), "pixels": n}
 
 
+
+def depth_figures(rt, params, scene):
+    """evaluate_run's depth figures alone ({"mae" in the depth files' units, "relative", "frames",
+    "pixels"}, None without depth maps) over the test frames, without the rest of an evaluation."""
+    from .render import render
+    rows = []
+    for k in scene.test_indices:
+        f = scene.frames[k]
+        h = render(rt, params, f.camera, f.time).host()
+        rows.append({"depth": _depth_row(h["depth"], h["alpha"], f)})
+    return _depth_summary(rows, scene.world_scale)
+
 # ------------------------------------------------------------------------------ flow vs gt_flow
 def flow_references(scene) -> dict:
     """{k: (gt flow, valid, dis epe)} for each test frame k that has scene/gt_flow/<name>.npy (the

@@ -4,7 +4,7 @@ The in-between targets (train/between.py) and the host halves of a training step
 numpy arrays of a few MB many times per step.  glibc's malloc serves blocks that large with mmap
 and returns them to the kernel on free, so every step pays page faults and the kernel's zeroing of
 fresh pages again: on the 320x256 pulling frames a forward splat (baselines.splat_forward) took
-three times as long as its arithmetic (docs/PERFORMANCE.md, "The host allocator").  Raising
+three times as long as its arithmetic (research/PERFORMANCE.md, "The host allocator").  Raising
 malloc's mmap threshold and trim threshold keeps those blocks in the heap for reuse.  Results do
 not change, only where the memory comes from; the process keeps its peak working set mapped.
 """

@@ -113,7 +113,7 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
     deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
     instead of float atomics; see ops/rasterize.py). None: on for devices without a reported SIMT
-    width (CPU drivers, where it is also the faster mode: tools/bench_render.py times both), off
+    width (CPU drivers, where it is also the faster mode: benchmarks/bench_render.py times both), off
     on SIMT devices (GPUs), whose atomics are cheap.
     sh_factors: v_sh as an ops.project.ShGradFactors (its per-Gaussian factors; the training step
     passes it to DeviceAdam) instead of the full [N, NT+1, K, 3] array.

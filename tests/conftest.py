@@ -16,12 +16,13 @@ import pytest
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 TINY_SIZE = dict(width=64, height=48, frames=10)   # the training tests' synthetic scene
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
-def load_tool(name: str):
-    """The module tools/<name>.py (the tools are scripts, not a package)."""
+def load_tool(name: str, folder: Path = TOOLS):
+    """The module <folder>/<name>.py (tools/ by default; the scripts are not a package)."""
     import importlib.util
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, Path(folder) / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

@@ -89,6 +89,21 @@ def test_dis_interpolation_recovers_a_translated_pattern(a):
     assert B.dis_interpolations(f0, f1, a, samplers=("linear", "cubic"))["linear"].tobytes() == got.tobytes()
 
 
+def test_the_bicubic_dis_baseline_is_the_straight_path_interpolation():
+    """dis_cubic warps each frame along its own flow, the in-between target's straight path
+    (train/between.py path_displacement without the frames beyond the pair): the two agree, as
+    research/interp_paths.py's straight column assumes (moved here from tests/test_interp_paths.py)."""
+    from endowave_cl.data.flow import estimate_flow
+    from endowave_cl.train.between import path_displacement
+    tex = _texture(seed=6)
+    d, a, span = np.array([3.0, 1.5]), 0.25, 0.2
+    f0, f1 = _shift(tex, *(-a * d)), _shift(tex, *((1 - a) * d))
+    f01, f10 = estimate_flow(f0, f1), estimate_flow(f1, f0)
+    g0, g1 = path_displacement(f01, a, span), path_displacement(f10, 1.0 - a, -span)
+    straight = B.mean_interpolation(B.sample_displaced(f0, -g0, "cubic"), B.sample_displaced(f1, -g1, "cubic"), a)
+    np.testing.assert_allclose(straight, B.dis_interpolations(f0, f1, a, samplers=("cubic",))["cubic"], atol=1e-6)
+
+
 def test_warp_backward_moves_content_along_the_flow():
     tex = _texture(seed=4)
     flow = np.zeros(tex.shape[:2] + (2,), np.float32)

@@ -9,12 +9,12 @@ from endowave_cl.train.config import DENSIFY_GRAD_THRESHOLD, TrainConfig, densif
 
 def test_config_defaults_follow_design():
     c = TrainConfig()
-    # the position rates are 4x DESIGN.md's (3DGS's) 1.6e-4 / 1.6e-6 (docs/QUALITY.md finding 15)
+    # the position rates are 4x DESIGN.md's (3DGS's) 1.6e-4 / 1.6e-6 (research/QUALITY.md finding 15)
     assert (c.lr_position_init, c.lr_position_final, c.lr_features, c.lr_opacity, c.lr_scales,
             c.lr_rotation) == (6.4e-4, 6.4e-6, 2.5e-3, 0.05, 5e-3, 1e-3)
     assert (c.densify_from, c.densify_every, c.densify_grad_threshold, c.prune_opacity,
             c.opacity_reset_every) == (500, 100, 0.0, 0.005, 3000)
-    # 0: 3DGS's 2e-4 up to 320x256, scaled by sqrt(320x256 / pixels) above (docs/QUALITY.md finding 27)
+    # 0: 3DGS's 2e-4 up to 320x256, scaled by sqrt(320x256 / pixels) above (research/QUALITY.md finding 27)
     assert DENSIFY_GRAD_THRESHOLD == 2e-4
     assert densify_threshold_for(160, 128) == densify_threshold_for(320, 256) == 2e-4
     assert densify_threshold_for(640, 512) == pytest.approx(1e-4, rel=1e-12)

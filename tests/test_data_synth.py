@@ -128,6 +128,21 @@ def test_seed_is_deterministic(tmp_path):
     assert np.array_equal(img(a), img(b)) and not np.array_equal(img(a), img(c))
 
 
+def test_more_frames_of_the_same_seed_keep_the_frames_at_their_times(tmp_path):
+    """A scene generated again with F times as many intervals (frames = (n - 1) F + 1) has the same
+    frames at the first one's times: research/fraction_eval.py scores a run between its frames on
+    that scene (moved here from tests/test_fraction_eval.py)."""
+    a = load_scene(make_synthetic_scene(tmp_path / "a", width=32, height=24, frames=4, seed=5))
+    b = load_scene(make_synthetic_scene(tmp_path / "b", width=32, height=24, frames=7, seed=5),
+                   world_scale=a.world_scale)
+    for j, f in enumerate(a.frames):
+        g = b.frames[2 * j]
+        assert g.time == f.time
+        np.testing.assert_array_equal(g.image, f.image)
+        np.testing.assert_array_equal(g.depth, f.depth)
+        np.testing.assert_array_equal(g.camera.viewmat, f.camera.viewmat)
+
+
 def test_failed_generation_leaves_nothing(tmp_path, monkeypatch):
     def boom(self, i):
         raise RuntimeError("disk full")

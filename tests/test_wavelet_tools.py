@@ -1,9 +1,10 @@
-"""Smoke tests of the wavelet tools (tiny settings): they run and print what they promise."""
+"""Smoke tests of the wavelet tools (tiny settings): tools/compare_wavelets.py and
+benchmarks/bench_wavelet.py run and print what they promise."""
 from __future__ import annotations
 
 import pytest
 
-from conftest import load_tool as load, oclgrind_active
+from conftest import BENCHMARKS, load_tool as load, oclgrind_active
 
 
 pytestmark = pytest.mark.skipif(oclgrind_active(), reason="full-size tool runs are too slow on Oclgrind")
@@ -31,14 +32,7 @@ def test_compare_wavelets_numpy_matches_opencl(tmp_path, capsys, rt):
     assert rows(a) == rows(b) and len(rows(a)) == 2
 
 
-def test_tune_wavelet_runs(capsys):
-    load("tune_wavelet").main(["--steps", "3", "--gaussians", "10", "--seeds", "1", "--size", "24x32",
-                               "--qs", "2", "--weights", "0:1:1:1", "--scales", "4"])
-    text = capsys.readouterr().out
-    assert "L1 only" in text and "q=2 w=0:1:1:1 x4" in text and "best by" in text
-
-
 def test_bench_wavelet_runs(capsys, rt):
-    load("bench_wavelet").main(["--height", "20", "--width", "24", "--runs", "1", "--warmup", "0"])
+    load("bench_wavelet", BENCHMARKS).main(["--height", "20", "--width", "24", "--runs", "1", "--warmup", "0"])
     text = capsys.readouterr().out
     assert "opencl  transform" in text and "torch   loss + gradient" in text and "20x24x3" in text

@@ -12,8 +12,8 @@
 #   3. selects the GPU ($ENDOWAVE_CL_DEVICE, --device SPEC; default "nvidia") and prints what the
 #      build options are chosen from (runtime.DeviceCaps: SIMT width, sub-groups, local memory,
 #      native float atomics);
-#   4. runs the kernel test suite on that device, tools/peak_probe.py, tools/perf_table.py,
-#      tools/bench_render.py and tools/bench_train_step.py --kernels there (each part's kernel time
+#   4. runs the kernel test suite on that device, benchmarks/peak_probe.py, benchmarks/perf_table.py,
+#      benchmarks/bench_render.py and benchmarks/bench_train_step.py --kernels there (each part's kernel time
 #      beside its wall time; on the frames of --scene DIR, else on ../shared's pulling frames when
 #      they are beside the checkout, else on a synthetic 640x512 scene);
 #   5. writes everything to one report file (--out, default gpu_check_<host>_<date>.txt).
@@ -175,22 +175,22 @@ KERNEL_TESTS=(tests/test_project4d.py tests/test_rasterize.py tests/test_binning
               tests/test_wavelet_loss.py tests/test_util_ops.py tests/test_runtime.py tests/test_select.py)
 section "4a. Kernel tests on the selected device"
 ( cd "$ROOT" && run "$PY" -m pytest -q -ra -p no:cacheprovider "${KERNEL_TESTS[@]}" ) || FAILED+=("kernel tests")
-section "4b. Peaks (tools/peak_probe.py)"
+section "4b. Peaks (benchmarks/peak_probe.py)"
 PEAKS="$(mktemp "${TMPDIR:-/tmp}/endowave-peaks.XXXXXX.json")"
-run "$PY" "$ROOT/tools/peak_probe.py" --runs 5 --mib $([ $DRY -eq 1 ] && echo 64 || echo 512) --json "$PEAKS" || FAILED+=("peak_probe")
-section "4c. Per-kernel table (tools/perf_table.py)"
-run "$PY" "$ROOT/tools/perf_table.py" --runs "$RUNS" --n "$N" --peaks "$PEAKS" \
+run "$PY" "$ROOT/benchmarks/peak_probe.py" --runs 5 --mib $([ $DRY -eq 1 ] && echo 64 || echo 512) --json "$PEAKS" || FAILED+=("peak_probe")
+section "4c. Per-kernel table (benchmarks/perf_table.py)"
+run "$PY" "$ROOT/benchmarks/perf_table.py" --runs "$RUNS" --n "$N" --peaks "$PEAKS" \
     --png "${OUT%.txt}_roofline.png" || FAILED+=("perf_table")
-section "4d. tools/bench_render.py"
-run "$PY" "$ROOT/tools/bench_render.py" --runs "$RUNS" --n "$N" --no-reference || FAILED+=("bench_render")
-[ $GPU -eq 1 ] && { run "$PY" "$ROOT/tools/bench_render.py" --runs "$RUNS" --n "$N" --no-reference --adjoint-mode deterministic || FAILED+=("bench_render deterministic"); }
-section "4e. tools/bench_train_step.py"
+section "4d. benchmarks/bench_render.py"
+run "$PY" "$ROOT/benchmarks/bench_render.py" --runs "$RUNS" --n "$N" --no-reference || FAILED+=("bench_render")
+[ $GPU -eq 1 ] && { run "$PY" "$ROOT/benchmarks/bench_render.py" --runs "$RUNS" --n "$N" --no-reference --adjoint-mode deterministic || FAILED+=("bench_render deterministic"); }
+section "4e. benchmarks/bench_train_step.py"
 SCENE_ARGS=()
 if [ -n "$SCENE" ]; then
     if [ -f "$SCENE/poses_bounds.npy" ]; then SCENE_ARGS=(--scene "$SCENE")
     else log "--scene $SCENE: no poses_bounds.npy there; bench_train_step uses its default scene"; fi
 fi
-run "$PY" "$ROOT/tools/bench_train_step.py" --kernels --runs "$STEPS" --warmup 2 --gaussians "$N" ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
+run "$PY" "$ROOT/benchmarks/bench_train_step.py" --kernels --runs "$STEPS" --warmup 2 --gaussians "$N" ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
     || FAILED+=("bench_train_step")
 
 section "done"

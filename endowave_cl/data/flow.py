@@ -229,6 +229,16 @@ def _to_frame_size(flow: np.ndarray, width: int, height: int) -> np.ndarray:
     return (out * np.array([width / w, height / h], np.float32)).astype(np.float32)
 
 
+
+def estimate_flow_at(image0: np.ndarray, image1: np.ndarray, method: str = "dis", size=None) -> np.ndarray:
+    """[H, W, 2] float32 flow from image0 to image1 as flow_for_scene estimates a training pair's:
+    on 8-bit grey frames area-averaged to size ((w, h), estimation_size; None: the frames' own)
+    and scaled back to the frames' size."""
+    h, w = image0.shape[:2]
+    size = (w, h) if size is None else tuple(size)
+    raw = _estimate(_make_estimator(method), _grey_at(image0, size), _grey_at(image1, size))
+    return _to_frame_size(np.asarray(raw, np.float32), w, h)
+
 def cache_key(scene, method: str, pairs, max_pixels: int = 0) -> str:
     """SHA-256 over everything the result depends on (see the module docstring)."""
     h = hashlib.sha256()

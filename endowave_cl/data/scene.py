@@ -49,7 +49,7 @@ VIEWPOINT_TOL = 1e-6
 MASK_KEEP = 0.999
 # Scene units.  A 4D Gaussian moves by turning in the space-time planes, and how far it must turn
 # for a given image motion depends on how space is measured against time (time is [0, 1] over the
-# sequence): the same scene in other depth units trains differently (docs/QUALITY.md, finding 18).
+# sequence): the same scene in other depth units trains differently (research/QUALITY.md, finding 18).
 # So the loader measures space in units that put the scene's typical depth at SCENE_DEPTH: the
 # median valid depth of the training frames, or without depth maps the depth-free prior plane
 # (PRIOR_NEAR_FLOOR below).  4 is the depth the defaults were validated at (the synthetic scenes'

@@ -20,7 +20,7 @@ KEY_BITS = 64  # keys are uint64
 
 @dataclass(frozen=True)
 class SortConfig:
-    """Tuning of the sort; see tools/bench_sort.py.
+    """Tuning of the sort; see benchmarks/bench_sort.py.
 
     radix_bits: digit width (passes = ceil(num_bits / radix_bits)).
     wg: work-items per group (local memory = 2^radix_bits * wg ints).
@@ -48,7 +48,7 @@ class SortConfig:
 CPU_CONFIG = SortConfig(radix_bits=8, wg=1, items_min=16, items_max=1 << 14, groups_per_cu=4)
 # GPU: narrow digits so that the [digit, work-item] table fits local memory with many
 # work-items; short chunks so that there are thousands of work-groups.  Its 11 passes for 44
-# bits are the fastest from a few million keys on (docs/PERFORMANCE.md "GPU": an H200 sorts 4M
+# bits are the fastest from a few million keys on (research/PERFORMANCE.md "GPU": an H200 sorts 4M
 # keys in 2.4 ms).  Below GPU_SMALL_MAX keys a sort's wall time is mostly its launches, and
 # GPU_SMALL_CONFIG's 6-bit digits (8 passes, longer chunks) sort 340k-1M keys in 1.4-1.6 ms
 # against 1.9-3.2 ms.
@@ -57,7 +57,7 @@ GPU_SMALL_CONFIG = SortConfig(radix_bits=6, wg=64, items_min=8, items_max=512, g
 GPU_SMALL_MAX = 1 << 21
 # CPU: keys of 9 to CPU_ONE_PASS_BITS bits (bin_and_sort's tile ids: 9 bits at 320x256, 11 at
 # 640x512) sort in one pass of that many bits, which costs less than two passes of 8 bits
-# (docs/PERFORMANCE.md, "Seventeenth pass").  Local memory: 2^11 ints with wg = 1.
+# (research/PERFORMANCE.md, "Seventeenth pass").  Local memory: 2^11 ints with wg = 1.
 CPU_ONE_PASS_BITS = 11
 
 

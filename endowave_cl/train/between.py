@@ -2,7 +2,7 @@
 
 A training step renders only at the training frames' times, so nothing says what the model shows
 in between: its Gaussians may fit each frame on its own (noise and compression artefacts too) and
-blend those fits between frames, which is what the test frames then see (docs/QUALITY.md).  The
+blend those fits between frames, which is what the test frames then see (research/QUALITY.md).  The
 pseudo ground-truth flow of every training pair (k, k') is known before training, so the frame at a
 time fraction s between them can be predicted, as a flow interpolator does:
 
@@ -13,7 +13,7 @@ pixels as ``between_sampler`` says: bicubically by default, since bilinear sampl
 half-pixel offsets of a midway warp averages neighbouring pixels and teaches a blurred frame).
 Every pixel is supervised, also where the flow failed its forward-backward check: there the target degrades towards a blend of
 the two frames, which still bounds what the model may show in between (supervising only the
-trusted pixels measured 0.25 dB lower on the pulling frames, docs/QUALITY.md).  With tool masks,
+trusted pixels measured 0.25 dB lower on the pulling frames, research/QUALITY.md).  With tool masks,
 only pixels that show tissue in both warped frames are supervised.  The step uses the colour
 losses (L1, D-SSIM, wavelet) and no depth or flow term.  Pairs whose two cameras differ are not
 used: an image-space warp predicts nothing for a moving camera.
@@ -26,7 +26,7 @@ weights exp(-(E_h - min_h E_h) / FUSE_TAU) normalised over h, and blends their i
 (1 - s) W0_h + s W1_h.  No frame at s is needed: the choice uses only the two training frames.
 With ``between_fuse = "mean"`` the hypotheses are averaged instead (equal weights where they are
 valid): their errors partly cancel, which scores higher PSNR on real video at the price of a
-softer frame (docs/QUALITY.md finding 20).
+softer frame (research/QUALITY.md finding 20).
 
 The model's own motion (``between_model``, after densify_until): by then the Gaussians' motion is
 fitted to every training frame, not to one pair's flow.  The step's forward also renders the flow
@@ -35,7 +35,7 @@ move linearly in time, so d1 = -(1 - s) / s d0 is where it will be at t_k'.  The
 along (d0, d1) are a second prediction of the frame at s whose errors differ from the flow
 interpolation's, and the target is their blend, (1 - w) flow target + w ((1 - s) I_k(p + d0) +
 s I_k'(p + d1)).  On the pulling frames the blend of the two predictions is nearer the held-out
-frames than either alone (docs/QUALITY.md finding 19).
+frames than either alone (research/QUALITY.md finding 19).
 
 With ``between_model_splat`` the model's prediction pushes the frames forward instead: two more
 renders give the motion the model shows at each frame's own time, g0 from t_k to s and g1 from
@@ -44,7 +44,7 @@ weights (baselines.splat_forward); the two splats are blended with weights (1 - 
 normalised, and the pixels that neither frame reaches keep the backward prediction above.  At its
 training frames the model is fitted closely, so its motion there is better than the motion it
 renders between them, and a forward splat leaves a pixel that one frame cannot see to the other
-(docs/QUALITY.md finding 20).
+(research/QUALITY.md finding 20).
 
 How a forward splat makes its image (``between_splat``): sharing each pixel's colour bilinearly
 among the four pixels around where it lands averages neighbouring pixels at fractional offsets,
@@ -55,12 +55,12 @@ land there says where q's colour comes from, and the frame is sampled there with
 densely each reaches q, so that what one frame cannot see comes from the other.  With
 ``between_flow_splat`` every flow hypothesis is pushed forward the same way (s F_kk' from the
 first frame, (1 - s) F_k'k from the second) instead of sampled backward, its backward warps
-filling the pixels that neither frame reaches (docs/QUALITY.md finding 21).  Pushing every
+filling the pixels that neither frame reaches (research/QUALITY.md finding 21).  Pushing every
 estimator's frames costs a host splat per estimator and frame, and where the estimators agree it
 pushes the same thing three times: ``between_push = "fused"`` pushes the frames once, along the
 estimators' flows fused per pixel by how well each returns to its start (``consistent_flows``:
 forward-backward error), which is as good a teacher on the pulling frames at a third of the splats
-(docs/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per pair.
+(research/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per pair.
 
 Curved paths (``between_path = "quadratic"``): the flows above move every pixel at constant
 velocity between the pair's frames.  Tissue that is pulled speeds up and slows down, and the
@@ -507,7 +507,7 @@ class BetweenSampler:
     motion_refresh > 0: the motion the model renders at a pair's two frames is
     rendered over the whole pair (G0 from the first frame to the second, G1 back) and kept for
     that many steps; the motion to s is s G0 and (1 - s) G1 (the means move linearly in time, so
-    up to perspective: a few thousandths of a pixel on the pulling frames, docs/QUALITY.md finding
+    up to perspective: a few thousandths of a pixel on the pulling frames, research/QUALITY.md finding
     22).  0: both are rendered to s in every step that needs them.  path (PATHS): "quadratic" bends
     every flow's paths with the pair's Bend (pair_bend, made once per pair)."""
 

@@ -19,7 +19,7 @@ _WAVELET = WaveletConfig()   # the wavelet loss's defaults, defined once in wave
 
 # Density relative to the image, so that one default suits 160x128 and 640x512: initial Gaussians
 # (init_points = 0) and the densification cap (max_gaussians = 0) per pixel of one frame.  On the
-# pulling frames more Gaussians than ~1 per pixel cost steps without paying back (docs/QUALITY.md);
+# pulling frames more Gaussians than ~1 per pixel cost steps without paying back (research/QUALITY.md);
 # the demo's tuned 40k cap at 160x128 is 2 per pixel.
 INIT_POINTS_PER_PIXEL = 1.0
 MAX_GAUSSIANS_PER_PIXEL = 2.0
@@ -27,30 +27,30 @@ MAX_GAUSSIANS_PER_PIXEL = 2.0
 # 4D Gaussian lives for part of the sequence (its temporal coverage, motion.temporal_coverage).
 # With the same motion, a sequence twice as long has half as many alive at any time under the same
 # cap.  So the default cap is also at least this many Gaussians alive per pixel at a time, given
-# the initial Gaussians' mean coverage (TrainConfig.resolve_cap_for_lifetimes; docs/QUALITY.md
+# the initial Gaussians' mean coverage (TrainConfig.resolve_cap_for_lifetimes; research/QUALITY.md
 # findings 13, 24): longer sequences, and faster or less regular motion, get a higher cap.
 ALIVE_PER_PIXEL = 0.4
 MAX_GAUSSIANS_PER_PIXEL_LIMIT = 16.0   # the raised cap's bound: memory (about 1 KB per Gaussian with
                                        # its gradient and Adam's moments) for very long sequences
 # what sh_degree = -1 becomes (TrainConfig.resolve_sh_degree): 3DGS's degree where the training
-# cameras move, 1 where every frame is seen from one camera centre (docs/QUALITY.md finding 12)
+# cameras move, 1 where every frame is seen from one camera centre (research/QUALITY.md finding 12)
 SH_DEGREE_MOVING = 3
 SH_DEGREE_ONE_VIEWPOINT = 1
 # The default schedule (iterations = 0) gives every training frame about STEPS_PER_TRAINING_FRAME
 # visits, and is never shorter than BASE_ITERATIONS: a longer sequence needs as many visits per frame
-# as a short one to fit them (docs/QUALITY.md finding 14).  The schedule keys (SCALED_FIELDS) are
+# as a short one to fit them (research/QUALITY.md finding 14).  The schedule keys (SCALED_FIELDS) are
 # step numbers of the BASE_ITERATIONS-step schedule and stretch with it, as --minutes stretches them.
 BASE_ITERATIONS = 6000
 STEPS_PER_TRAINING_FRAME = 109   # 6000 steps over the 55 training frames of the pulling sequence
 # The flow estimators see at most this many pixels (flow_max_pixels' default, data/flow.py
 # estimation_size): their patches and windows have fixed sizes in pixels, and on the 640x512 pulling
-# frames flows estimated at 320x256 and scaled up are the better teacher (docs/QUALITY.md finding 26)
+# frames flows estimated at 320x256 and scaled up are the better teacher (research/QUALITY.md finding 26)
 FLOW_MAX_PIXELS = 320 * 256
 # densify_grad_threshold = 0 resolves to DENSIFY_GRAD_THRESHOLD (3DGS's) for frames of up to
 # DENSIFY_GRAD_PIXELS pixels, and to DENSIFY_GRAD_THRESHOLD x sqrt(DENSIFY_GRAD_PIXELS / pixels) for
 # larger ones (TrainConfig.resolve_density).  The gradient it is compared with is in NDC units: for a
 # Gaussian of a given size in pixels it falls as 1 / frame height, and the initial Gaussians are one
-# per pixel at every size, so the same threshold densifies larger frames less (docs/QUALITY.md
+# per pixel at every size, so the same threshold densifies larger frames less (research/QUALITY.md
 # finding 27).
 DENSIFY_GRAD_THRESHOLD = 2e-4
 DENSIFY_GRAD_PIXELS = 320 * 256
@@ -65,7 +65,7 @@ class TrainConfig:
     # -- schedule -------------------------------------------------------------------------------
     iterations: int = 0             # 0: STEPS_PER_TRAINING_FRAME per training frame, at least
                                     # BASE_ITERATIONS (6000: about 10-15 minutes for the 63 pulling
-                                    # frames at 320x256 on 2 CPU cores, docs/QUALITY.md), with the
+                                    # frames at 320x256 on 2 CPU cores, research/QUALITY.md), with the
                                     # schedule keys stretched alike; 4DGS trains 30000 on a GPU.
                                     # --minutes plans it from a time budget
     minutes: float = 0.0            # > 0: plan the schedule to end within this many minutes of
@@ -88,12 +88,12 @@ class TrainConfig:
                                     # frame spacings).  Without flow every Gaussian gets it; with
                                     # init_velocity a Gaussian lives as long as its constant velocity
                                     # follows the flow's curvature, from 2 spacings up to this
-                                    # (train/motion.py linear_lifetime; docs/QUALITY.md)
+                                    # (train/motion.py linear_lifetime; research/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
     between_prob: float = 0.5       # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
-                                    # (train/between.py); 0: training frames only (docs/QUALITY.md)
+                                    # (train/between.py); 0: training frames only (research/QUALITY.md)
     between_anneal_final: float = 0.5  # between_prob is multiplied by a factor that falls linearly
                                     # from 1 at densify_until to this at the last step (0: the run
                                     # ends on the training frames alone; 1: constant; 0.5: what
@@ -102,13 +102,13 @@ class TrainConfig:
                                     # (train/between.py S_DISTRIBUTIONS): "uniform" over it, or
                                     # "triangular", twice as often at its middle and falling to
                                     # none at its two frames; it moves quality towards the
-                                    # middle, not up (docs/QUALITY.md finding 30)
+                                    # middle, not up (research/QUALITY.md finding 30)
     between_path: str = "quadratic"  # how the in-between target moves a pixel between the pair's
                                     # frames (train/between.py PATHS): "quadratic", along the
                                     # parabola through its positions in the pair's frames and in
                                     # the training frame beyond the pair on each side (tissue that
                                     # speeds up or slows down); "linear", at constant velocity
-                                    # along the pair's flows (docs/QUALITY.md finding 31)
+                                    # along the pair's flows (research/QUALITY.md finding 31)
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
@@ -120,48 +120,48 @@ class TrainConfig:
     between_sampler: str = "cubic"  # how the in-between target samples the two frames between
                                     # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
-                                    # and teaches a blurred frame; docs/QUALITY.md finding 10)
+                                    # and teaches a blurred frame; research/QUALITY.md finding 10)
     between_flows: str = "dis,farneback"  # further flow estimators (comma-separated,
                                     # data/flow.py METHODS) whose interpolations are fused with
                                     # flow_method's in the in-between target, per pixel by how well
                                     # each one's two warps agree (train/between.py
-                                    # fused_interpolation; docs/QUALITY.md finding 20); "":
+                                    # fused_interpolation; research/QUALITY.md finding 20); "":
                                     # flow_method's alone
     between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
                                     # pixel's by how well its two warps agree, "mean" averages them
-                                    # (docs/QUALITY.md findings 20, 21)
+                                    # (research/QUALITY.md findings 20, 21)
     between_flow_splat: bool = True  # the flows push the two frames forward (a forward splat, as
                                     # between_splat says; which flows: between_push) instead of
                                     # sampling them backward, the backward prediction filling the
-                                    # pixels that no source pixel reaches (docs/QUALITY.md findings
+                                    # pixels that no source pixel reaches (research/QUALITY.md findings
                                     # 21, 22)
     between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
-                                    # 0: the flow's alone; 1: the model's alone; docs/QUALITY.md
+                                    # 0: the flow's alone; 1: the model's alone; research/QUALITY.md
                                     # finding 19)
     between_model_splat: bool = True  # the model's prediction in the in-between target pushes the
                                     # two frames forward along the motion the model renders at
                                     # their own times (two more renders per such step) instead of
                                     # sampling them along the motion it renders at s (train/
-                                    # between.py splat_interpolation; docs/QUALITY.md finding 20)
+                                    # between.py splat_interpolation; research/QUALITY.md finding 20)
     between_push: str = "fused"     # which flows between_flow_splat pushes forward (train/between.py
                                     # PUSH_MODES): "fused" one flow per direction, fused per pixel
                                     # from the estimators by forward-backward consistency (two host
-                                    # splats); "each" every estimator's own (six; docs/QUALITY.md
+                                    # splats); "each" every estimator's own (six; research/QUALITY.md
                                     # finding 22)
     between_motion_refresh: int = 500  # with between_model_splat: the motion the model renders at
                                     # a pair's two frames is rendered over the whole pair, scaled to
                                     # each step's time and kept this many steps (two renders fewer
                                     # in most late in-between steps); 0: rendered to the step's time
                                     # in every such step (train/between.py BetweenSampler;
-                                    # docs/QUALITY.md finding 22)
+                                    # research/QUALITY.md finding 22)
     between_splat: str = "reverse"  # how a forward splat makes its image (train/between.py
                                     # SPLAT_MODES): "colour" shares the colours bilinearly among
                                     # the four pixels where they land, which blurs at fractional
                                     # offsets; "reverse" splats the displacement, reverses it and
                                     # samples the frame along it with between_sampler (sharper
-                                    # targets; docs/QUALITY.md finding 21)
+                                    # targets; research/QUALITY.md finding 21)
     max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
                                     # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
                                     # the initial Gaussians live short parts of a long sequence
@@ -169,7 +169,7 @@ class TrainConfig:
     flow_method: str = "dis_fine"   # pseudo ground-truth optical flow (OpenCV, data/flow.py METHODS):
                                     # the flow loss's target and the initial velocities; DIS down to
                                     # its finest level, closer to exact flow than DIS's default preset
-                                    # (docs/QUALITY.md finding 23); "dis" is 4x faster
+                                    # (research/QUALITY.md finding 23); "dis" is 4x faster
     flow_max_pixels: int = FLOW_MAX_PIXELS  # the estimators see frames larger than this many
                                     # pixels area-averaged to at most this many, and their flows are
                                     # scaled back up (data/flow.py estimation_size; 320x256 for
@@ -183,7 +183,7 @@ class TrainConfig:
     lr_position_init: float = 6.4e-4   # x scene extent, decays log-linearly ...
     lr_position_final: float = 6.4e-6  # ... to this (x extent) at lr_position_steps; both 4x
                                         # 3DGS's 1.6e-4 / 1.6e-6: the Gaussians of a deforming
-                                        # scene move further (docs/QUALITY.md finding 15)
+                                        # scene move further (research/QUALITY.md finding 15)
     lr_position_steps: int = 0          # 0: decay over `iterations`
     lr_time: float = 1.6e-4             # t column of the means: 3DGS's initial position lr, not
                                         # decayed and NOT times the extent (time is normalised to
@@ -225,7 +225,7 @@ class TrainConfig:
     lambda_depth: float = 0.1           # L1 of the depth in scene units (data/scene.py: the median
                                         # depth is 4); DESIGN.md's 1 holds the depth to 0.25 % for
                                         # 0.8-1.5 dB of image PSNR and a worse rendered flow, 0.1 to
-                                        # 0.5 % (docs/QUALITY.md finding 18)
+                                        # 0.5 % (research/QUALITY.md finding 18)
     lambda_flow: float = 0.01           # not in the paper: flow loss is a mean squared endpoint
                                         # error in pixels (see reference/losses.py); 1 px of error
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
@@ -294,7 +294,7 @@ class TrainConfig:
         direction that changes only as far as the Gaussian itself moves, a few degrees: degree 1 (a
         colour that changes linearly with that direction) is all the data can constrain, and
         degrees 2 and 3 would add 108 of the 144 colour coefficients per Gaussian, and the time to
-        project and update them, without changing the test frames (docs/QUALITY.md finding 12)."""
+        project and update them, without changing the test frames (research/QUALITY.md finding 12)."""
         if self.sh_degree < 0:
             self.sh_degree = SH_DEGREE_ONE_VIEWPOINT if one_viewpoint else SH_DEGREE_MOVING
 

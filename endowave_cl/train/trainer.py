@@ -292,7 +292,7 @@ class Trainer:
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
-        [H, W, C]: losses_enqueue, then its sums read back (tools/bench_train_step.py times it)."""
+        [H, W, C]: losses_enqueue, then its sums read back (benchmarks/bench_train_step.py times it)."""
         from ..ops.util import read_back
         pending = self.losses_enqueue(out, tgt)
         total, parts = pending.finish(read_back(self.rt, pending.sums))

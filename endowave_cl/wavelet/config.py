@@ -15,7 +15,7 @@ class WaveletConfig:
     """Settings of the rational-wavelet loss.
 
     q:       a = (q + 1) / q.  Default 2: a = 3/2, sigma = 2/3, 13 taps (R = 6), the smallest
-             truly rational factor.  In tools/tune_wavelet.py q = 1 (dyadic) and q = 2 tie within
+             truly rational factor.  In research/tune_wavelet.py q = 1 (dyadic) and q = 2 tie within
              the seed noise (docs/WAVELET.md); q = 2 is kept as the paper's rational design.
     levels:  decomposition depth; the paper uses two.
     weights: (lambda_LL, lambda_LH, lambda_HL, lambda_HH), the weight of each band's mean squared

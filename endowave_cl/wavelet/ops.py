@@ -57,13 +57,13 @@ def _launch(rt, kernel, total: int, *args) -> None:
 
 # consecutive elements per work-item of conv_axis / conv_axis_bwd (CONV_RUN in cl/wavelet.cl): 16 on
 # CPUs, where twice the run halves the work-items and each tap feeds two 8-wide vectors
-# (docs/PERFORMANCE.md, sixth pass); 8 on GPUs, the setting measured there
+# (research/PERFORMANCE.md, sixth pass); 8 on GPUs, the setting measured there
 CONV_RUN_CPU, CONV_RUN_GPU = 16, 8
 RS_RUN = 8            # consecutive elements per work-item of resample_axis / resample_axis_bwd (RS_RUN there)
 RS_ROW_POS = 8        # positions per work-item of resample_axis_rows / resample_axis_bwd_rows (RS_ROW_POS there)
 ROWS_RANGE = 8        # multiple of the row resampling kernels' range along a line
 # Row passes (a run spans positions: inner < CONV_RUN) stage their lines in local memory
-# (conv_axis_rows, conv_axis_rows_bwd): their border runs are then plain vector runs (docs/PERFORMANCE.md,
+# (conv_axis_rows, conv_axis_rows_bwd): their border runs are then plain vector runs (research/PERFORMANCE.md,
 # fourteenth pass).  STAGED_ROWS = False: the unstaged kernels everywhere (tests compare the two).
 STAGED_ROWS = True
 ROWS_GROUP_SIMT = 64    # work-items per line of the staged row passes on lock-step SIMD devices (GPUs);

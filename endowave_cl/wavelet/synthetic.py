@@ -1,6 +1,6 @@
 """A synthetic endoscopy-like test image: smooth reddish tissue under a vignetting light, darker
 vessels, fine texture, and small saturated specular highlights (used by tools/compare_wavelets.py
-and tools/tune_wavelet.py)."""
+and research/tune_wavelet.py)."""
 from __future__ import annotations
 
 from typing import Tuple
