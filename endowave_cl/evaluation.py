@@ -276,9 +276,8 @@ def error_panel_image(pred: np.ndarray, frame) -> np.ndarray:
 
 def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[str, str]:
     """Write RUN/eval_per_frame.png and RUN/eval_worst.png (both atomically); return their paths."""
-    from .atomic import write_bytes_atomic
+    from .atomic import write_bytes_atomic, write_png_atomic
     from .render import render
-    from .run_io import write_png_atomic
     run_dir = Path(run_dir)
     plot = run_dir / "eval_per_frame.png"
     write_bytes_atomic(plot, per_frame_plot_png(m, title))

@@ -5,7 +5,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from .atomic import write_png_atomic  # noqa: F401  (moved to atomic.py; evaluation.py imports it from here)
+from .atomic import write_png_atomic  # noqa: F401  (moved to atomic.py; re-exported for older callers)
 from .errors import EndowaveError
 
 

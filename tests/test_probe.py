@@ -124,7 +124,8 @@ def test_devices_command_shows_the_rasterizer_verdicts(cpu_rt, fresh, capsys):
 
 def test_tiny_scene_has_work_for_every_lane():
     """The probe's scene covers partial tiles and crowded pixels, so wrong lanes show."""
-    arrays, w, h, *_ = P._tiny_scene(3)
+    from endowave_cl.probe_child import _tiny_scene
+    arrays, w, h, *_ = _tiny_scene(3)
     assert w % 16 and h % 16
     ranges = arrays["tile_ranges"]
     assert ((ranges[:, 1] - ranges[:, 0]) >= 3).all()

@@ -44,6 +44,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..atomic import atomic_directory
+from ..warp import sample_displaced
 from .flo import read_flow_file
 
 METHODS = ("dis", "dis_fine", "farneback", "deepflow", "tvl1")
@@ -156,7 +157,6 @@ def photometric_consistent(image0: np.ndarray, image1: np.ndarray, fw: np.ndarra
     max_diff, the mean absolute difference over the colour channels (images in [0, 1]).  A flow
     that carries a pixel onto different colour follows something other than the tissue: a moving
     specular highlight, the tool, a failure of the estimator."""
-    from ..baselines import sample_displaced
     diff = np.abs(np.asarray(image0, np.float32) - sample_displaced(image1, np.asarray(fw, np.float32)))
     return (diff.mean(-1) if diff.ndim == 3 else diff) <= max_diff
 

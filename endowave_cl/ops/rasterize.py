@@ -14,16 +14,12 @@ from typing import Dict
 
 import numpy as np
 
+from .. import env, probe
 from ..errors import EndowaveError
-from ..layout import ALPHA_MAX, ALPHA_MIN, T_STOP, TILE, tile_grid
+from ..layout import TILE, tile_grid
 from ..probe import ENV_PLANT
 from ..runtime import ENV_CACHE_DIR
-from .util import f32_literal
-
-
-def _options(C: int):
-    return [f"-DC={int(C)}", f"-DALPHA_MAX={f32_literal(ALPHA_MAX)}",
-            f"-DALPHA_MIN={f32_literal(ALPHA_MIN)}", f"-DT_STOP={f32_literal(T_STOP)}"]
+from .raster_options import RasterChoice, _options, vec_options  # noqa: F401  (re-exported)
 
 
 # Kernel variants.  "scalar": one pixel per work-item (cl/rasterize.cl, rasterize_bwd.cl), the GPU
@@ -46,19 +42,7 @@ class RasterVariantError(EndowaveError):
     """A forced rasterizer variant failed its probe on this device."""
 
 
-@dataclass(frozen=True)
-class RasterChoice:
-    """The rasterizer variant a call runs: "scalar", or "vector" with vw lanes in bw-wide blocks."""
-    variant: str
-    vw: int = 0
-    bw: int = 0
-
-    def describe(self) -> str:
-        return "scalar kernel" if self.variant == "scalar" else f"vector kernel, {self.vw} lanes"
-
-
 def _forced():
-    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
     bw = env.get(ENV_VEC_BLOCK_W)
     return env.get(ENV_VARIANT), env.get(ENV_VEC_WIDTH), None if bw is None else str(bw)
 
@@ -72,7 +56,6 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
     variant is probed too and raises RasterVariantError when its probe fails.  Falling back prints
     one line to stderr saying what runs and why."""
     forced_v, forced_w, forced_bw = _forced()
-    from .. import env
     key = ("raster_choice", int(C), forced_v, forced_w, forced_bw, env.raw(ENV_CACHE_DIR), env.raw(ENV_PLANT))
     ch = rt.cache.get(key)
     if ch is None:
@@ -82,9 +65,8 @@ def raster_choice(rt, C: int = 6) -> RasterChoice:
                 f"forced rasterizer variant on {rt.name} failed its probe ({'; '.join(failed)}); "
                 f"unset {ENV_VARIANT} / {ENV_VEC_WIDTH} to let endowave-cl fall back")
         if failed:
-            from ..probe import probe_dir
             print(f"endowave-cl: {rt.name}: rasterizer runs the {ch.describe()} ({'; '.join(failed)}); "
-                  f"verdicts in {probe_dir()}, {ENV_VEC_WIDTH} / {ENV_VARIANT} force one",
+                  f"verdicts in {probe.probe_dir()}, {ENV_VEC_WIDTH} / {ENV_VARIANT} force one",
                   file=sys.stderr, flush=True)
         rt.cache[key] = ch
     return ch
@@ -120,8 +102,7 @@ def explain_choice(rt, C: int = 6):
             continue
         if rt.is_oclgrind:   # a simulator: its builds cannot take the process down
             return RasterChoice("vector", w, bw), notes + [f"{w} lanes (simulator, not probed)"], failed
-        from ..probe import verdict
-        v = verdict(rt, C, w, bw)
+        v = probe.verdict(rt, C, w, bw)
         if v.ok:
             how = "cached verdict" if v.cached else f"{v.seconds:.1f} s probe"
             return RasterChoice("vector", w, bw), notes + [f"{w} lanes ok ({how})"], failed
@@ -282,11 +263,6 @@ def rasterize(rt, means2d, conic, opac, features, sorted_values, tile_ranges, wi
               _buf(rt, sorted_values), tile_ranges.data, np.int32(width), np.int32(height), np.int32(tiles_x),
               res.out.data, res.alpha.data, res.T_final.data, res.last.data)
     return res
-
-
-def vec_options(C: int, ch: RasterChoice):
-    """Build options of rasterize_vec.cl for C channels and the variant ch."""
-    return _options(C) + [f"-DVW={ch.vw}", f"-DBW={ch.bw}"]
 
 
 def vec_bwd_options(rt, C: int, ch: RasterChoice, det: bool):

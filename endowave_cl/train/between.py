@@ -82,7 +82,10 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from ..baselines import sample_displaced, splat_forward, two_flow_displacements
+from ..warp import sample_displaced, splat_forward, two_flow_displacements
+# the in-between modes' names are settings' values, listed in config.py (read from here too)
+from .config import (FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES,  # noqa: F401
+                     between_flow_methods)
 
 
 # fused_interpolation: half-width (px) of the box over which a hypothesis's two warps are compared,
@@ -90,27 +93,9 @@ from ..baselines import sample_displaced, splat_forward, two_flow_displacements
 # a hypothesis's weight falls by a factor e against the best one's
 FUSE_RADIUS = 3
 FUSE_TAU = 0.02
-# how the hypotheses are combined (between_fuse): weighted by their warps' agreement, or averaged
-FUSE_MODES = ("agree", "mean")
-# how a forward splat makes its image (between_splat): the splatted displacement reversed and the
-# frame sampled along it, or the colours shared bilinearly
-SPLAT_MODES = ("reverse", "colour")
-# where in the pair an in-between step's time falls (between_s): "uniform" over (0, 1);
-# "triangular", the mean of two uniform draws (density 4 s up to 1/2, 4 (1 - s) above): twice the
-# uniform's share at the middle of the pair, furthest from both training frames, where the target
-# is least certain and only these steps supervise the model, and none at the frames themselves,
-# which their own steps supervise
-S_DISTRIBUTIONS = ("uniform", "triangular")
-# which flows between_flow_splat pushes forward (between_push): one flow per direction fused from
-# the estimators per pixel by forward-backward consistency, or every estimator's own
-PUSH_MODES = ("fused", "each")
 # consistent_flows: the forward-backward error (px) at which an estimator's weight falls by a
 # factor e against the most consistent one's
 PUSH_TAU = 1.0
-# how a pixel moves between a pair's frames (between_path): at constant velocity along the pair's
-# flow, or along the parabola through its positions in the pair's frames and the training frame
-# beyond the pair on its own side (Bend)
-PATHS = ("linear", "quadratic")
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
@@ -270,9 +255,9 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
                    bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
     frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
-    where each frame's pixels are taken from comes from both flows (baselines.two_flow_displacements)
+    where each frame's pixels are taken from comes from both flows (warp.two_flow_displacements)
     instead of each frame's own.  sampler: how the frames are sampled between pixels
-    (baselines.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
+    (warp.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
     two frames from other estimators, fused with the pair's own (fused_interpolation, as fuse
     says: FUSE_MODES).  model_disp
     [H, W, 2]: where each pixel of the model's render at s lies in the pair's first frame (its
@@ -618,7 +603,6 @@ def between_flows(scene, cfg, progress: bool = False) -> Tuple[Dict[int, object]
     estimators ({k: FlowPair} each, cached on disk), as the in-between targets fuse them.  A scene
     that brings its own flow (flow/) has no further estimators: every method reads that flow."""
     from ..data.flow import flow_for_scene
-    from .config import between_flow_methods
     own = flow_for_scene(scene, method=cfg.flow_method, progress=progress, max_pixels=cfg.flow_max_pixels)
     extra = []
     for m in between_flow_methods(cfg):

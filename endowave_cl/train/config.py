@@ -54,6 +54,26 @@ FLOW_MAX_PIXELS = 320 * 256
 # finding 27).
 DENSIFY_GRAD_THRESHOLD = 2e-4
 DENSIFY_GRAD_PIXELS = 320 * 256
+# The in-between modes (train/between.py implements them; validate_config checks the values)
+# how the hypotheses are combined (between_fuse): weighted by their warps' agreement, or averaged
+FUSE_MODES = ("agree", "mean")
+# how a forward splat makes its image (between_splat): the splatted displacement reversed and the
+# frame sampled along it, or the colours shared bilinearly
+SPLAT_MODES = ("reverse", "colour")
+# where in the pair an in-between step's time falls (between_s): "uniform" over (0, 1);
+# "triangular", the mean of two uniform draws (density 4 s up to 1/2, 4 (1 - s) above): twice the
+# uniform's share at the middle of the pair, furthest from both training frames, where the target
+# is least certain and only these steps supervise the model, and none at the frames themselves,
+# which their own steps supervise
+S_DISTRIBUTIONS = ("uniform", "triangular")
+# which flows between_flow_splat pushes forward (between_push): one flow per direction fused from
+# the estimators per pixel by forward-backward consistency, or every estimator's own
+PUSH_MODES = ("fused", "each")
+# how a pixel moves between a pair's frames (between_path): at constant velocity along the pair's
+# flow, or along the parabola through its positions in the pair's frames and the training frame
+# beyond the pair on its own side (Bend)
+PATHS = ("linear", "quadratic")
+
 SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_position_steps",
                  "between_motion_refresh")
 
@@ -113,12 +133,12 @@ class TrainConfig:
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
     between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
-                                    # (Super SloMo's intermediate flow, baselines.py
+                                    # (Super SloMo's intermediate flow, warp.py
                                     # two_flow_displacements) instead of each frame's own flow;
                                     # with between_flow_splat, the backward warps that fill what
                                     # no pixel reaches
     between_sampler: str = "cubic"  # how the in-between target samples the two frames between
-                                    # pixels (baselines.py SAMPLERS): "cubic" (bicubic) or "linear"
+                                    # pixels (warp.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
                                     # and teaches a blurred frame; research/QUALITY.md finding 10)
     between_flows: str = "dis,farneback"  # further flow estimators (comma-separated,
@@ -456,11 +476,10 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     from ..data.scene import SPLITS
     if cfg.split not in SPLITS:
         raise EndowaveError(f"{source}: key 'split' must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
-    from ..baselines import SAMPLERS
+    from ..warp import SAMPLERS
     if cfg.between_sampler not in SAMPLERS:
         raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
                             f"got {cfg.between_sampler!r}")
-    from .between import FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES
     if cfg.between_path not in PATHS:
         raise EndowaveError(f"{source}: key 'between_path' must be one of {', '.join(PATHS)}, "
                             f"got {cfg.between_path!r}")
