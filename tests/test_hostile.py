@@ -481,3 +481,30 @@ def test_pool_worker_dies_with_its_driver(tmp_path):
     else:
         os.kill(worker, signal.SIGKILL)
         pytest.fail("the worker outlived its driver by 20 s")
+
+
+# ------------------------------------------------------------------ found by tools/sweep_cli.py
+def test_manifest_cpus_tiny_is_refused(tmp_path):
+    from endowave_cl.batch.manifest import load_manifest
+    from endowave_cl.errors import EndowaveError
+    (tmp_path / "data" / "a").mkdir(parents=True)
+    p = tmp_path / "m.toml"
+    p.write_text('root = "o"\nscenes = ["data/*"]\n[resources]\ncpus = 1e-300\n')
+    with pytest.raises(EndowaveError, match="resources.cpus' must be from 0.01"):
+        load_manifest(p)
+
+
+def test_flow_command_refuses_absurd_gt_flow(flow_scene, tmp_path):
+    import shutil
+    import numpy as np
+    s = tmp_path / "s"
+    shutil.copytree(flow_scene, s)
+    np.save(s / "gt_flow" / "000002.npy", np.full((48, 64, 2), 1e30, np.float32))
+    rc, out, err = _main("flow", s, "--cache-dir", tmp_path / "c", "--no-progress")
+    _one_line(rc, err, "000002.npy", "flow vectors up to")
+
+
+def test_eval_fps_runs_without_end_is_refused(own_run):
+    scene, run = own_run
+    rc, _, err = _main("eval", run, "--fps-runs", "99999999999999999999")
+    _one_line(rc, err, "--fps-runs must be at most 10000")

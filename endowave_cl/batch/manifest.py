@@ -98,14 +98,18 @@ def _options(src: str, table: str, data: dict) -> Dict[str, Any]:
 
 
 MAX_TASK_CPUS = 1024     # resources.cpus: threads per task (1e300 went into POCL_MAX_PTHREAD_COUNT and crashed)
+MIN_TASK_CPUS = 0.01     # ... and tasks per core (1e-300 made a pool of 1e300 workers: OverflowError)
 
 
 def _check_ranges(src: str, m: Manifest) -> None:
     import math
     r = m.resources
-    if not (math.isfinite(r["cpus"]) and 0 < r["cpus"] <= MAX_TASK_CPUS):
-        raise EndowaveError(f"{src}: key 'resources.cpus' must be > 0 and at most {MAX_TASK_CPUS} (CPU cores per "
-                            f"task: PoCL and torch start as many threads), got {r['cpus']:g}")
+    if not (math.isfinite(r["cpus"]) and r["cpus"] > 0):
+        raise EndowaveError(f"{src}: key 'resources.cpus' must be > 0, got {r['cpus']:g}")
+    if not MIN_TASK_CPUS <= r["cpus"] <= MAX_TASK_CPUS:
+        raise EndowaveError(f"{src}: key 'resources.cpus' must be from {MIN_TASK_CPUS:g} to {MAX_TASK_CPUS} (CPU "
+                            f"cores per task: PoCL and torch start as many threads, the pool as many workers "
+                            f"as fit), got {r['cpus']:g}")
     if not (math.isfinite(r["gpus"]) and r["gpus"] >= 0):
         raise EndowaveError(f"{src}: key 'resources.gpus' must be >= 0, got {r['gpus']}")
     if r["retries"] < 0:

@@ -19,6 +19,9 @@ from __future__ import annotations
 from pathlib import Path
 
 
+MAX_FPS_RUNS = 10000   # timed renders for the FPS figure
+
+
 def add_arguments(p) -> None:
     p.add_argument("run", help="run folder written by endowave-cl train")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
@@ -77,6 +80,8 @@ def run(args) -> int:
     from ..runtime import get_runtime
     if args.fps_runs < 0:
         raise EndowaveError(f"--fps-runs must be >= 0, got {args.fps_runs}")
+    if args.fps_runs > MAX_FPS_RUNS:    # 1e20 timed renders never end (issue 57)
+        raise EndowaveError(f"--fps-runs must be at most {MAX_FPS_RUNS}, got {args.fps_runs}")
     r = load_run(args.run, args.scene)
     if not r.scene.test_indices:
         n = len(r.scene.frames)

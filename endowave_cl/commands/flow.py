@@ -44,7 +44,9 @@ def gt_epe(scene, result):
         valid = pair.valid > 0
         if valid.any():
             from ..data.flo import read_flow_file
-            gt = read_flow_file(f)          # one-line errors naming the file for a damaged one
+            from ..data.flow import _fit_to_scene
+            # one-line errors naming the file for a damaged one, NaN or absurd vectors (1e30)
+            gt = _fit_to_scene(read_flow_file(f), f, scene)
             if gt.shape != pair.flow.shape:
                 from ..errors import DataError
                 raise DataError(f"{f}: ground-truth flow is {list(gt.shape)}, the frames are {list(pair.flow.shape)}")
