@@ -13,12 +13,27 @@ checkpoints it kept are from before.
 """
 from __future__ import annotations
 
+import argparse
+import sys
 from pathlib import Path
 
 DEMO_SIZE = (160, 128, 24)       # width, height, frames of the built-in demo scene
 DEMO_ITERATIONS = 1500           # enough for a clear PSNR rise in a couple of minutes on 2 CPU cores
 DEMO_INIT_POINTS = 6000          # ~0.3 Gaussians per pixel at 160x128 (30000 suits 640x512)
 DEMO_MAX_GAUSSIANS = 40000       # densification cap for the demo (~2 per pixel), keeps it quick
+
+
+class _ListSettings(argparse.Action):
+    """--list-settings: print the settings table and exit before the other arguments are checked
+    (as --help does: no --out needed)."""
+
+    def __init__(self, option_strings, dest, **kw):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ..train.config import settings_text
+        sys.stdout.write(settings_text())
+        parser.exit(0)
 
 
 def add_arguments(p) -> None:
@@ -31,7 +46,9 @@ def add_arguments(p) -> None:
                    help="the settings to start from: 'default' (this version's), or 'paper' (EndoWave as published: "
                         "30000 steps, 3DGS/4DGS schedule, SH degree 3, opacity reset, no in-between steps); "
                         "--config and --set apply on top")
-    p.add_argument("--config", help="TOML file of training settings (see endowave_cl/train/config.py)")
+    p.add_argument("--config", help="TOML file of training settings, KEY = VALUE lines (the keys: --list-settings)")
+    p.add_argument("--list-settings", action=_ListSettings,
+                   help="print every training setting with its default, range and meaning, and exit")
     p.add_argument("--iterations", type=int,
                    help=f"number of training steps (default: {STEPS_PER_TRAINING_FRAME} per training frame, at "
                         f"least {BASE_ITERATIONS}, with the densification schedule stretched alike)")
@@ -46,7 +63,7 @@ def add_arguments(p) -> None:
     p.add_argument("--no-wavelet", action="store_true", help="turn the rational-wavelet loss off")
     p.add_argument("--no-depth", action="store_true", help="turn the depth loss off")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config key, e.g. --set lambda_flow=0.05 (repeatable)")
+                   help="override any config key, e.g. --set lambda_flow=0.05 (repeatable; the keys: --list-settings)")
     p.add_argument("--restart", action="store_true",
                    help="start over; the earlier run's files move to RUN/previous_run/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

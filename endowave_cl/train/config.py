@@ -388,7 +388,7 @@ def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
 def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_text: bool = False) -> None:
     for key, value in values.items():
         if key not in _FIELDS:
-            raise EndowaveError(f"{source}: unknown key '{key}'")
+            raise EndowaveError(f"{source}: unknown key '{key}'{did_you_mean(key)}")
         setattr(cfg, key, _coerce(key, value, source, from_text))
     validate_config(cfg, source)
 
@@ -562,3 +562,137 @@ def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = No
     if overrides:
         apply_values(cfg, overrides, "override", from_text=True)
     return cfg
+
+
+# ------------------------------------------------------------------ the keys, for people (train --list-settings)
+# what the keys without a comment of their own in TrainConfig mean
+_MEANINGS = {
+    "seed": "random seed of the initialisation and of the steps' frame order",
+    "log_every": "steps between log lines (and train_curves.csv rows)",
+    "eval_every": "steps between test-frame evaluations during training (0: only at the end)",
+    "checkpoint_every": "steps between checkpoints (0: only at the end)",
+    "temporal_freqs": "TEASH temporal frequencies of the colour (fixed by the model layout)",
+    "lr_opacity": "learning rate of the opacities",
+    "densify_from": "first step of density control (a step of the BASE_ITERATIONS schedule)",
+    "densify_every": "steps between density-control passes",
+    "split_children": "Gaussians a split makes of one",
+    "opacity_reset_value": "the opacity an opacity reset caps every Gaussian at",
+    "lambda_rgb": "weight of the L1 colour loss",
+    "use_depth": "the depth loss on (where the scene has depth maps)",
+    "use_flow": "the optical-flow loss on",
+    "use_wavelet": "the rational-wavelet loss on",
+    "wavelet_weight_ll": "wavelet loss weight of the LL band (each band's mean squared coefficient error)",
+    "wavelet_weight_lh": "wavelet loss weight of the LH band (wavelet/config.py)",
+    "wavelet_weight_hl": "wavelet loss weight of the HL band (wavelet/config.py)",
+    "wavelet_weight_hh": "wavelet loss weight of the HH band (wavelet/config.py)",
+}
+
+
+def did_you_mean(key: str) -> str:
+    """" (did you mean 'x'?)" for the TrainConfig key nearest to a mistyped one, else ""."""
+    import difflib
+    near = difflib.get_close_matches(str(key), sorted(_FIELDS), n=1, cutoff=0.6)
+    return f" (did you mean '{near[0]}'?)" if near else ""
+
+
+def _field_comments() -> Dict[str, str]:
+    """{key: the comment beside it in TrainConfig's source, its lines joined} (empty when the
+    source cannot be read)."""
+    import inspect
+    import re
+    try:
+        lines = inspect.getsource(TrainConfig).splitlines()
+    except (OSError, TypeError):
+        return {}
+    out: Dict[str, str] = {}
+    cur = None
+    for line in lines[1:]:
+        m = re.match(r"^    (\w+)\s*:", line)
+        if m and m.group(1) in _FIELDS:
+            cur = m.group(1)
+            text = _comment_of(line)
+            out[cur] = text
+        elif cur is not None and re.match(r"^ {5,}#", line):
+            more = line.strip()[1:].strip()
+            out[cur] = out[cur] + more if out[cur].endswith("-") else (out[cur] + " " + more).strip()
+        else:
+            cur = None
+    return out
+
+
+def _comment_of(line: str) -> str:
+    """The text after a line's first # outside quotes."""
+    quote = None
+    for i, ch in enumerate(line):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#":
+            return line[i + 1:].strip()
+    return ""
+
+
+def _one_line(text: str, width: int = 110) -> str:
+    """The first sentence of a comment (up to a ". " or "; " outside brackets), at most width
+    characters."""
+    depth, end = 0, len(text)
+    for i, ch in enumerate(text):
+        depth += (ch in "([") - (ch in ")]")
+        if (depth == 0 and text[i:i + 2] in (". ", "; ") and text[:i].strip(". ")
+                and (ch == ";" or not text[i - 1:i].isupper())):
+            end = i
+            break
+    first = text[:end].strip().rstrip(".")
+    if len(first) > width:
+        first = first[:width - 3].rsplit(" ", 1)[0] + "..."
+    return first
+
+
+def _values_text(name: str, default: Any) -> str:
+    """The range (RANGES) or the values a key accepts."""
+    if name in RANGES:
+        low, high, low_in, high_in = RANGES[name]
+        if isinstance(high, int) and high > 2 ** 31:
+            return f"in [{low}, 2^63 - 1]"
+        return _range_text(low, high, low_in, high_in)
+    if name in FIXED:
+        return f"fixed: {FIXED[name]}"
+    if isinstance(default, bool):
+        return "true | false"
+    from ..data.flow import METHODS
+    from ..data.scene import SPLITS
+    from ..warp import SAMPLERS
+    choices = {"recipe": tuple(RECIPES), "split": SPLITS, "between_sampler": tuple(SAMPLERS),
+               "between_path": PATHS, "between_s": S_DISTRIBUTIONS, "between_fuse": FUSE_MODES,
+               "between_push": PUSH_MODES, "between_splat": SPLAT_MODES, "flow_method": METHODS}
+    if name in choices:
+        return " | ".join(choices[name])
+    if name == "between_flows":
+        return "comma-separated: " + ", ".join(METHODS)
+    return ""
+
+
+def settings_table():
+    """[(key, default, range or values, one-line meaning)] for every TrainConfig key, in order."""
+    comments = _field_comments()
+    rows = []
+    for f in fields(TrainConfig):
+        default = getattr(TrainConfig(), f.name)
+        shown = str(default).lower() if isinstance(default, bool) else (
+            repr(default) if isinstance(default, str) else f"{default:g}" if isinstance(default, float) else str(default))
+        meaning = _MEANINGS.get(f.name) or _one_line(comments.get(f.name, ""))
+        rows.append((f.name, shown, _values_text(f.name, default), meaning))
+    return rows
+
+
+def settings_text() -> str:
+    """What ``endowave-cl train --list-settings`` prints."""
+    rows = settings_table()
+    w = [max(len(r[i]) for r in rows) for i in range(3)]
+    head = ("Training settings: --set KEY=VALUE (repeatable) or KEY = VALUE lines in a --config TOML "
+            "file.\nDefaults of the 'default' recipe; --recipe paper starts from: "
+            + ", ".join(f"{k}={v}" for k, v in RECIPES["paper"].items()) + ".\n\n")
+    lines = [f"{'key':<{w[0]}}  {'default':<{w[1]}}  {'range / values':<{w[2]}}  meaning"]
+    lines += [f"{k:<{w[0]}}  {d:<{w[1]}}  {v:<{w[2]}}  {m}".rstrip() for k, d, v, m in rows]
+    return head + "\n".join(lines) + "\n"
