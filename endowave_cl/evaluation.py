@@ -233,7 +233,7 @@ def per_frame_plot_png(m: dict, title: str = "") -> bytes:
     from .baselines import LABELS
     rows = m["per_frame"]
     idx = [r["index"] for r in rows]
-    fig = Figure(figsize=(7.0, 3.6), dpi=110)
+    fig = Figure(figsize=(7.0, 4.4), dpi=110)
     ax = fig.add_subplot(1, 1, 1)
     curves = [("model", "model", "o-")] + [(name, LABELS[name], s) for name, s in
                                            (("mean", "s--"), ("dis", "^--"), ("dis_cubic", "v--"), ("teacher", "d--"))
@@ -241,12 +241,13 @@ def per_frame_plot_png(m: dict, title: str = "") -> bytes:
     for key, label, style in curves:
         vals = [r[key]["psnr"] for r in rows]
         ax.plot(idx, vals, style, label=f"{label} (mean {np.mean(vals):.2f} dB)", markersize=4)
-    ax.set_xlabel("test frame index (time order)")
+    ax.set_xlabel(f"{m.get('split', 'test')} frame index (time order)")
     ax.set_ylabel("PSNR, whole image of masked images (dB)")
     if title:
         ax.set_title(title, fontsize=9)
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
+    # below the axes, so that no curve's points are hidden behind it
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
@@ -259,7 +260,8 @@ def worst_frame(m: dict) -> int:
 
 
 def error_panel_image(pred: np.ndarray, frame) -> np.ndarray:
-    """[H, 3W + 2 gaps, 3] float RGB: ground truth | render | error, full resolution.  The error is
+    """[LABEL_HEIGHT + H, 3W + 2 gaps, 3] float RGB: a strip naming the panels above ground truth |
+    render | error, full resolution.  The error is
     mean |render - gt| over RGB (tool pixels of a masked scene set to 0, as scored), through the
     inferno colour map, saturating at ERROR_FULL_SCALE."""
     import cv2
@@ -271,7 +273,27 @@ def error_panel_image(pred: np.ndarray, frame) -> np.ndarray:
     e8 = np.clip(err / ERROR_FULL_SCALE * 255 + 0.5, 0, 255).astype(np.uint8)
     heat = cv2.applyColorMap(e8, cv2.COLORMAP_INFERNO)[..., ::-1].astype(np.float32) / 255.0   # BGR -> RGB
     gap = np.ones((gt.shape[0], 4, 3), np.float32)
-    return np.concatenate([gt, gap, pred, gap, heat], 1)
+    panels = np.concatenate([gt, gap, pred, gap, heat], 1)
+    return np.concatenate([_label_strip(panels.shape[1], gt.shape[1], 4,
+                                        ("ground truth", "model", f"|error|, full scale {ERROR_FULL_SCALE:g}")),
+                           panels], 0)
+
+
+LABEL_HEIGHT = 16   # px: the strip above the worst-frame panels that names them
+
+
+def _label_strip(width: int, panel: int, gap: int, labels) -> np.ndarray:
+    """[LABEL_HEIGHT, width, 3] float RGB, white, each label in black at the left of its panel
+    (shrunk to fit a narrow panel)."""
+    import cv2
+    strip = np.full((LABEL_HEIGHT, width, 3), 255, np.uint8)
+    for i, text in enumerate(labels):
+        scale = 0.4
+        while scale > 0.2 and cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > panel - 4:
+            scale -= 0.05
+        cv2.putText(strip, text, (i * (panel + gap) + 2, LABEL_HEIGHT - 4), cv2.FONT_HERSHEY_SIMPLEX, scale,
+                    (0, 0, 0), 1, cv2.LINE_AA)
+    return strip.astype(np.float32) / 255.0
 
 
 def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[str, str]:

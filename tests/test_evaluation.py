@@ -200,11 +200,14 @@ def test_eval_command_baselines_margin_flow_and_figures(rt, scene_dir, tmp_path,
     plot = cv2.imread(str(run / "eval_per_frame.png"))
     assert plot is not None and plot.shape[0] > 200
     worst = cv2.imread(str(run / "eval_worst.png"))
-    assert worst.shape == (48, 3 * 64 + 8, 3)
+    from endowave_cl.evaluation import LABEL_HEIGHT
+    assert worst.shape == (LABEL_HEIGHT + 48, 3 * 64 + 8, 3)
+    assert worst[:LABEL_HEIGHT, :64].min() < 100                                  # a label above each panel
+    assert worst[:LABEL_HEIGHT, 68:132].min() < 100 and worst[:LABEL_HEIGHT, 136:].min() < 100
     k = min(m["per_frame"], key=lambda r: r["model"]["psnr"])["index"]
     assert m["worst_frame"] == k
     gt8 = (scene.frames[k].image[..., ::-1] * 255 + 0.5).astype(np.uint8)        # left panel, BGR
-    np.testing.assert_array_equal(worst[:, :64], gt8)
+    np.testing.assert_array_equal(worst[LABEL_HEIGHT:, :64], gt8)
     assert not any(p.name.endswith(".tmp") for p in run.iterdir())                 # atomic writes
 
 
