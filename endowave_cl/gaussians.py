@@ -10,7 +10,7 @@ Every kernel and reference uses this layout (float32, C order):
     sh        [N, NT+1, K, 3] TEASH coefficients c[n, k, rgb]; K = (L+1)^2 SH bases, n = 0..NT
     phase     [N, NT+1]       learnable phase phi_n of each temporal frequency (phi_0 unused)
 
-TEASH colour (chosen convention, see README): tau = t (global time, as the paper writes),
+TEASH colour (chosen convention, docs/METHOD.md): tau = t (global time, as the paper writes),
 omega_n = 2 pi n / TEASH_PERIOD with TEASH_PERIOD = 2 (twice the normalised sequence length,
 so the first harmonic is not forced to repeat between the first and the last frame);
 colour = max(0, 0.5 + sum_{n,k} c[n,k] Y_k(d) cos(omega_n t + phi_n)), d the unit direction from

@@ -24,7 +24,7 @@ Choices (DESIGN.md leaves them open):
   ``flow_huber_delta``, default 4) it continues linearly (Huber: 2 delta |e| - delta^2, same value
   and slope at delta), so one pixel's gradient is at most 2 delta.  Without that bound, Gaussians
   whose velocity Sigma_xt / Sigma_tt runs away render flows far beyond the image, and the squared
-  term takes over training (the measurement is in the README).
+  term takes over training (the measurement: research/SUMMARY.md, "Choices the paper leaves open").
 """
 from __future__ import annotations
 
