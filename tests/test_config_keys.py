@@ -714,6 +714,39 @@ def _between_s(scene, rt, tmp_path):
         validate_config(TrainConfig(between_s="middle"), "config.json")
 
 
+def _between_levels(scene, rt, tmp_path):
+    """between_levels: the drawn fraction moves onto the grid j / K, the target is between_target's
+    at that fraction (float16-kept: within 5e-4), made once per pair and grid point; 1 is refused."""
+    from endowave_cl.errors import EndowaveError
+    from endowave_cl.train.between import between_target, level_fraction, pair_time
+    from endowave_cl.train.config import TrainConfig, validate_config
+    tr = _trainer(scene, rt, tmp_path / "k", iterations=0, between_prob=1.0, between_levels=4)
+    rng = np.random.default_rng(5)
+    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
+    s = level_fraction(float(rng.uniform(0.0, 1.0)), 4)
+    assert s in (0.25, 0.5, 0.75)
+    _, t, dev = tr._between.draw(np.random.default_rng(5))
+    assert t == pytest.approx(pair_time(scene, pair, s), abs=1e-12)
+    want = between_target(scene, pair, s, **_target_kw(tr))[0]
+    np.testing.assert_allclose(dev.image.get(), want, atol=5e-4)
+    assert len(tr._between._static) == 1
+    calls = []
+    import endowave_cl.train.between as B
+    real = B._flow_prediction
+    B._flow_prediction = lambda *a, **k: calls.append(1) or real(*a, **k)
+    try:
+        _, _, dev2 = tr._between.draw(np.random.default_rng(5))     # the same pair and grid point: kept
+    finally:
+        B._flow_prediction = real
+    assert not calls and np.array_equal(dev2.image.get(), dev.image.get())
+    # 0: the continuous draw, nothing kept
+    tr0 = _trainer(scene, rt, tmp_path / "c", iterations=0, between_prob=1.0)
+    tr0._between.draw(np.random.default_rng(5))
+    assert not tr0._between._static
+    with pytest.raises(EndowaveError, match="between_levels"):
+        validate_config(TrainConfig(between_levels=1), "config.json")
+
+
 def _between_path(scene, rt, tmp_path):
     """between_path: "quadratic" bends the drawn target's paths with the pair's Bend (the flows to
     the training frames beyond a pair with a neighbour on both sides), which changes the target on
@@ -1012,6 +1045,7 @@ CHECKS = {
     "between_by_time": _between_by_time,
     "between_s": _between_s,
     "between_path": _between_path,
+    "between_levels": _between_levels,
     "flow_anneal_final": _flow_anneal_final,
     "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,

@@ -96,6 +96,9 @@ FUSE_TAU = 0.02
 # consistent_flows: the forward-backward error (px) at which an estimator's weight falls by a
 # factor e against the most consistent one's
 PUSH_TAU = 1.0
+# between_levels: the most host memory the flow predictions kept per grid point may take (bytes);
+# past it the predictions of further (pair, grid point)s are made at every draw
+TARGET_CACHE_BYTES = 2 << 30
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
@@ -277,19 +280,31 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
     image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat,
                                      push, pushed_flows, bend)
-    if model_disp is not None and model_weight > 0.0:
-        # the Gaussians' means move linearly in time, so the displacement to the second frame is
-        # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
-        # frame has no weight)
-        d0 = np.asarray(model_disp, np.float32)
-        d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
-        w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
-        model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
-        if model_fwd is not None:
-            model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
-        image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
-        weight = weight * ok
+    image, weight = blend_model_prediction(scene, pair, s, image, weight, sampler, model_disp, model_weight,
+                                           model_fwd, splat)
     return image, weight, pair_time(scene, pair, s)
+
+
+def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.ndarray, sampler: str,
+                           model_disp: Optional[np.ndarray], model_weight: float,
+                           model_fwd: Optional[Tuple[np.ndarray, np.ndarray]], splat: str):
+    """(image, weight): the flow prediction (image, weight) at fraction s blended with the model's
+    own prediction as between_target describes (model_disp, model_weight, model_fwd, splat); the
+    flow prediction itself where model_disp is None or model_weight is 0."""
+    if model_disp is None or not model_weight > 0.0:
+        return image, weight
+    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
+    # the Gaussians' means move linearly in time, so the displacement to the second frame is
+    # the first one scaled by the ratio of the time steps: -(1 - s) / s (at s = 0 the second
+    # frame has no weight)
+    d0 = np.asarray(model_disp, np.float32)
+    d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
+    w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
+    model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
+    if model_fwd is not None:
+        model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
+    image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
+    return image, weight * ok
 
 
 def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra: Sequence[object], fuse: str,
@@ -468,6 +483,15 @@ def _warp_pair(f0, f1, d0, d1, sampler: str):
     return sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler), ok
 
 
+def level_fraction(s: float, levels: int) -> float:
+    """s in (0, 1) moved onto the grid j / levels, j = 1 .. levels - 1 (between_levels): the grid
+    point of the (levels - 1) equal parts of (0, 1) that s falls in; s itself for levels < 2."""
+    if levels < 2:
+        return s
+    j = 1 + min(int(s * (levels - 1)), levels - 2)
+    return j / float(levels)
+
+
 def draw_fraction(rng: np.random.Generator, distribution: str = "uniform") -> float:
     """s in (0, 1) of an in-between step, drawn as distribution says (S_DISTRIBUTIONS)."""
     if distribution == "triangular":
@@ -500,8 +524,13 @@ class BetweenSampler:
                  extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
                  model_splat: bool = False, flow_splat: bool = False, splat: str = "colour",
                  motion_refresh: int = 0, push: str = "each", s_distribution: str = "uniform",
-                 path: str = "linear"):
+                 path: str = "linear", levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES):
         self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
+        self.levels = int(levels)
+        # (pair index, grid point j) -> (image [H, W, 3] float16, weight [H, W] float16): the flow
+        # prediction at s = j / levels, kept up to cache_bytes (levels >= 2 only)
+        self._static: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]] = {}
+        self._cache_left = int(cache_bytes)
         self.s_distribution = s_distribution
         self.model_splat, self.flow_splat, self.splat, self.push = model_splat, flow_splat, splat, push
         self._pushed: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}   # pair index -> consistent_flows
@@ -537,7 +566,7 @@ class BetweenSampler:
         else:
             index = int(rng.choice(len(self.pairs), p=self.pair_prob))
         pair = self.pairs[index]
-        s = draw_fraction(rng, self.s_distribution)
+        s = level_fraction(draw_fraction(rng, self.s_distribution), self.levels)
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
         disp = fwd = None
         if model_flow is not None and model_weight > 0.0:
@@ -558,6 +587,22 @@ class BetweenSampler:
         weight [H, W], time).  Without the model's motion (the defaults) it is the static target:
         the pair's flow interpolation alone."""
         pair = self.pairs[index]
+        image, weight = self.flow_prediction(index, s)
+        image, weight = blend_model_prediction(self.scene, pair, s, image, weight, self.sampler, model_disp,
+                                               model_weight, model_fwd, self.splat)
+        return image, weight, pair_time(self.scene, pair, s)
+
+    def flow_prediction(self, index: int, s: float) -> Tuple[np.ndarray, np.ndarray]:
+        """(image [H, W, 3], weight [H, W]) float32: the flow prediction of pair index at fraction s
+        (between_target without the model).  With levels >= 2 and s on the grid it is made once
+        per pair and grid point and kept (float16: within 5e-4 of the float32 result) while the
+        cache has room."""
+        j = int(round(s * self.levels)) if self.levels >= 2 else 0
+        key = (index, j)
+        if j and abs(j - s * self.levels) < 1e-6 and key in self._static:
+            image, weight = self._static[key]
+            return image.astype(np.float32), weight.astype(np.float32)
+        pair = self.pairs[index]
         fused = self.flow_splat and self.push == "fused"
         pushed = self._fused(index) if fused else None
         bend = None
@@ -566,9 +611,15 @@ class BetweenSampler:
                 self._bends[index] = pair_bend(self.scene, self.pairs, index, lambda p: [p, *self.extra(p)],
                                                self._fused if fused else None)
             bend = self._bends[index]
-        return between_target(self.scene, pair, s, self.two_flow, self.sampler, self.extra(pair),
-                              model_disp, model_weight, self.fuse, model_fwd, self.flow_splat, self.splat,
-                              self.push, pushed, bend)
+        f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
+        image, weight = _flow_prediction(f0, f1, pair, s, self.two_flow, self.sampler, self.extra(pair), self.fuse,
+                                         self.flow_splat, self.splat, self.push, pushed, bend)
+        if j and abs(j - s * self.levels) < 1e-6 and self._cache_left >= image.size * 2 + weight.size * 2:
+            kept = (image.astype(np.float16), np.asarray(weight).astype(np.float16))
+            self._static[key] = kept
+            self._cache_left -= kept[0].nbytes + kept[1].nbytes
+            return kept[0].astype(np.float32), kept[1].astype(np.float32)   # the same target every time
+        return image, weight
 
     @classmethod
     def from_config(cls, rt, scene, cfg, flows: Dict[int, object],
@@ -576,7 +627,8 @@ class BetweenSampler:
         """The sampler a TrainConfig's between_* keys describe."""
         return cls(rt, scene, flows, cfg.between_two_flow, cfg.between_sampler, extra_flows, cfg.between_by_time,
                    cfg.between_fuse, cfg.between_model_splat, cfg.between_flow_splat, cfg.between_splat,
-                   cfg.between_motion_refresh, cfg.between_push, cfg.between_s, cfg.between_path)
+                   cfg.between_motion_refresh, cfg.between_push, cfg.between_s, cfg.between_path,
+                   cfg.between_levels)
 
     def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
         """consistent_flows of pair index's estimators, made once."""
@@ -624,6 +676,7 @@ class Teacher:
     def __init__(self, scene, cfg, progress: bool = False):
         flows, extra = between_flows(scene, cfg, progress)
         self.sampler = BetweenSampler.from_config(None, scene, cfg, flows, extra)
+        self.sampler.levels = 0                     # the exact target at any fraction, nothing kept
         self.index = {(p.src, p.dst): i for i, p in enumerate(self.sampler.pairs)}
 
     def image(self, i0: int, i1: int, s: float) -> Optional[np.ndarray]:

@@ -129,6 +129,12 @@ class TrainConfig:
                                     # the training frame beyond the pair on each side (tissue that
                                     # speeds up or slows down); "linear", at constant velocity
                                     # along the pair's flows (research/QUALITY.md finding 31)
+    between_levels: int = 0         # 0: an in-between step's fraction s is drawn from a continuous
+                                    # distribution and its target built on the host at every step;
+                                    # K >= 2: s is moved onto the grid j / K (j = 1 .. K - 1) and each
+                                    # pair's flow prediction at a grid point is built once and kept
+                                    # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
+                                    # that later in-between steps cost little more than plain ones
     between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
                                     # time it spans (every moment of the sequence gets the same
                                     # share) instead of uniformly over the pairs
@@ -405,7 +411,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_levels": (0, 1024, True, True), "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
@@ -471,6 +477,9 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if 0 < cfg.flow_max_pixels < MIN_ESTIMATION_PIXELS:     # the estimators fail on smaller frames (issue 57)
         raise EndowaveError(f"{source}: key 'flow_max_pixels' must be 0 (the frame's size) or at least "
                             f"{MIN_ESTIMATION_PIXELS}, got {cfg.flow_max_pixels}")
+    if cfg.between_levels == 1:
+        raise EndowaveError(f"{source}: key 'between_levels' must be 0 (continuous) or at least 2 (a grid of "
+                            f"fractions), got 1")
     if cfg.recipe not in RECIPES:
         raise EndowaveError(f"{source}: key 'recipe' must be one of {', '.join(RECIPES)}, got {cfg.recipe!r}")
     from ..data.scene import SPLITS
