@@ -572,5 +572,6 @@ def test_variant_choice(rt, monkeypatch):
     monkeypatch.setenv(ENV_VEC_WIDTH, "8")
     assert project_lanes(rt) == 8
     monkeypatch.setenv(ENV_VEC_WIDTH, "5")
-    with pytest.raises(ValueError):
+    from endowave_cl.env import EnvError
+    with pytest.raises(EnvError, match=f"{ENV_VEC_WIDTH}='5'"):        # the variable named, one line
         project_lanes(rt)
