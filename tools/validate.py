@@ -53,9 +53,9 @@ def _cli(*args) -> list:
 
 def _run(cmd, log: Path) -> int:
     with open(log, "ab") as f:
-        f.write(("$ " + " ".join(cmd) + "\n").encode())
+        f.write(("$ " + " ".join(map(str, cmd)) + "\n").encode())
         f.flush()
-        return subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+        return subprocess.call(list(map(str, cmd)), stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
 
 
 def scene_path(name: str, shared: Path, out: Path, log: Path) -> Path:
