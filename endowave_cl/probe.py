@@ -150,3 +150,10 @@ def run_child(rt, C: int, vw: int, bw: int, timeout: Optional[float] = None) -> 
     else:
         what = f"the probe exited with code {p.returncode}"
     return Verdict(False, what + (f": {why}" if why else ""), dt, "crash")
+
+
+if __name__ == "__main__":
+    # ``python -m endowave_cl.probe`` was the child's command before the child's side moved to
+    # probe_child.py: a process started before that update still runs it, and must get a verdict
+    import runpy
+    runpy.run_module("endowave_cl.probe_child", run_name="__main__")
