@@ -31,7 +31,6 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # quality_run
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
             "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"},

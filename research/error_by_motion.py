@@ -17,10 +17,8 @@ carry the motion.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 EDGES = (2.0, 6.0)                      # px of DIS flow between the neighbours: slow | mid | fast
 REGIONS = ("slow", "mid", "fast")

@@ -26,7 +26,6 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.data.scene import load_scene
     from endowave_cl.data.synth import make_synthetic_scene
     from endowave_cl.errors import EndowaveError

@@ -33,7 +33,6 @@ def main(argv=None) -> int:
                     help="comma-separated groups of --methods to fuse (default: the three)")
     ap.add_argument("--sampler", default="cubic", help="how the warps sample the frames (baselines.SAMPLERS)")
     a = ap.parse_args(argv)
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.baselines import SAMPLERS, sample_displaced
     from endowave_cl.data.flow import METHODS, estimate_flow
     from endowave_cl.data.scene import load_scene

@@ -34,7 +34,6 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--method", default="dis", help="flow estimator (data/flow.py METHODS), default dis")
     a = ap.parse_args(argv)
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.baselines import mean_interpolation, neighbours, sample_displaced
     from endowave_cl.data.flow import METHODS, estimate_flow
     from endowave_cl.data.scene import load_scene

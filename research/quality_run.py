@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from endowave_cl.errors import EndowaveError  # noqa: E402
+from endowave_cl.errors import EndowaveError
 
 
 def _machine() -> str:

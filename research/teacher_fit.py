@@ -13,7 +13,6 @@ model at k; the neighbour mean; and the model at k - 1 and k + 1.
 """
 from __future__ import annotations
 
-import os
 import sys
 from types import SimpleNamespace
 
@@ -21,7 +20,6 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.data.flow import estimate_flow_at, estimation_size
     from endowave_cl.errors import EndowaveError
     from endowave_cl.gaussians import upload

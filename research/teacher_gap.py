@@ -24,7 +24,6 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", help="a training run folder (config.json and a checkpoint)")
     a = ap.parse_args(argv)
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.baselines import baseline_images, neighbours
     from endowave_cl.data.flow import flow_for_scene
     from endowave_cl.errors import EndowaveError

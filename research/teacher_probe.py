@@ -38,7 +38,6 @@ def main(argv=None) -> int:
     ap.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
                     help=f"a target with these in-between keys changed ({', '.join(KEYS)}); repeatable")
     a = ap.parse_args(argv)
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     from endowave_cl.data.flow import estimate_flow
     from endowave_cl.errors import EndowaveError
     from endowave_cl.gaussians import upload
