@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import io
 import os
+import platform
 import statistics
 import subprocess
 import sys
@@ -35,6 +36,8 @@ def main():
     ap.add_argument("--skip-pool", action="store_true")
     a = ap.parse_args()
     w, h = map(int, a.size.split("x"))
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     from endowave_cl.data.synth import make_synthetic_scene
     base = Path(tempfile.mkdtemp(prefix="bench-batch-"))
     names = [f"s{i}" for i in range(a.scenes)]

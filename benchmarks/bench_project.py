@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import platform
 import statistics
 import sys
 import time
@@ -74,6 +75,8 @@ def main(argv=None):
     f_med, f_min, f_k = timed(fwd)
     b_med, b_min, b_k = timed(bwd)
     visible = int((proj.radius.get() > 0).sum())
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"device: {rt.describe()}")
     print(f"sizes: N = {args.n} Gaussians ({visible} visible at t = {t}), SH degree {g.sh_degree}, "
           f"NT = {g.temporal_freqs}, C = 6, image {args.width} x {args.height}")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import platform
 import shutil
 import socket
 import statistics
@@ -70,6 +71,8 @@ def main() -> int:
     rt = get_runtime(a.device)
     model = ViewerModel(r, rt)
     app = ViewerApp(model, "127.0.0.1", free_port(), "bench").start()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"run {a.run}: {len(r.gaussians)} Gaussians, step {r.step}, on {rt.name}")
     profile = tempfile.mkdtemp(prefix="bench-chromium-")
     try:

@@ -76,6 +76,8 @@ def main(argv=None):
         wavelet_loss_and_grad(rt, rd, td, md, cfg)  # reads the loss back: synchronous
         rt.finish()
 
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"device: {rt.describe()}")
     print(f"host: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads)")
