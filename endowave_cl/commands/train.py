@@ -2,7 +2,7 @@
 
 Examples:
   endowave-cl train --demo --out runs/demo
-  endowave-cl train ../shared/data/endonerf/pulling_soft_tissues --out runs/pulling --downscale 2
+  endowave-cl train scenes/pulling_soft_tissues --out runs/pulling --downscale 2
   endowave-cl train SCENE --out RUN --no-flow --no-wavelet      # the ablation switches
 A run folder holds config.json, checkpoints (checkpoint_*.npz: the two newest and the best) and
 train_log.json; training an existing run folder resumes from its newest readable checkpoint
