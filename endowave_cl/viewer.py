@@ -1,7 +1,8 @@
 """What the viewer shows, independent of the web front end (endowave_cl/viewer_app.py holds the
 viser wiring): browser camera -> our Camera, the rendered views (colour, colour-mapped depth, flow on
 a colour wheel), the ground-truth / error / tool-mask panes at frame times, their composition into
-the one image that is streamed (a 2 x 2 grid when any is on), and the 3D Gaussians at a time for the browser's splat renderer.
+the one image that is streamed (a 2 x 2 grid when any is on), the 3D Gaussians at a time for the
+browser's splat renderer, and the gentle orbit around a frame camera (gentle_pose).
 
 Everything here is plain numpy + the OpenCL render op, so it is tested without a browser.
 """
@@ -23,6 +24,14 @@ FLOW_MIN_SCALE = 1e-3                 # ... but never below this fraction of the
 ALPHA_EMPTY = 0.5                     # depth / flow of pixels with less accumulated opacity are shown black
 ERROR_FULL_SCALE = 0.25               # error pane saturates here: the same scale as eval_worst.png
 PANE_GAP = 4                          # pixels of background between the panes
+# The gentle orbit (gentle_pose).  viser's orbit controls turn the browser camera by
+# 2 pi * drag / canvas height radians (camera-controls' rotate speed 1, not settable from the server):
+# 120 px on an 800 px canvas = 54 degrees, a grazing side view of tissue seen head-on.  The server
+# renderer therefore renders from the browser camera's rotation away from the frame camera scaled by
+# ORBIT_SENSITIVITY and clamped at ORBIT_MAX_DEG: 120 px on 800 px -> 13.5 degrees, the limit at
+# 267 px; a 120 px drag turns the view at most ORBIT_MAX_DEG on any canvas.  Pan and zoom are kept.
+ORBIT_SENSITIVITY = 0.25
+ORBIT_MAX_DEG = 30.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -62,6 +71,71 @@ def pose_of_camera(cam: Camera) -> Tuple[np.ndarray, np.ndarray, float]:
     """Our Camera -> (wxyz, position, vertical fov in radians): what the browser starts from."""
     R = cam.viewmat[:3, :3].astype(np.float64)
     return matrix_to_quat(R.T), cam.campos.astype(np.float64), 2.0 * math.atan(0.5 * cam.height / cam.fy)
+
+
+def _axis_angle(R: np.ndarray) -> Tuple[np.ndarray, float]:
+    """Rotation matrix -> (unit axis, angle in radians, 0..pi)."""
+    R = np.asarray(R, np.float64)
+    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    ang = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    n = float(np.linalg.norm(v))
+    if n > 1e-9:
+        return v / n, ang
+    if ang < 1e-6:
+        return np.array([0.0, 0.0, 1.0]), 0.0
+    # angle ~ pi: the axis is the column of R + I with the largest norm
+    B = R + np.eye(3)
+    col = B[:, int(np.argmax(np.linalg.norm(B, axis=0)))]
+    return col / np.linalg.norm(col), ang
+
+
+def _rotation(axis: np.ndarray, ang: float) -> np.ndarray:
+    """Rodrigues: rotation by ``ang`` radians about the unit ``axis``."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], np.float64)
+    return np.eye(3) + math.sin(ang) * K + (1.0 - math.cos(ang)) * K @ K
+
+
+@dataclass
+class GentlePose:
+    wxyz: np.ndarray            # the camera the view is rendered from: camera -> world rotation
+    position: np.ndarray        # ... and its centre
+    raw_deg: float              # how far the browser camera has turned from the frame camera
+    deg: float                  # how far the rendered view has turned (<= max_deg)
+    limit_position: Optional[np.ndarray]   # where to pull the browser camera back to (None: no need)
+
+
+def gentle_pose(wxyz, position, look_at, home_wxyz, sensitivity: float = ORBIT_SENSITIVITY,
+                max_deg: float = ORBIT_MAX_DEG, slack_deg: float = 1.0) -> GentlePose:
+    """The camera to render from for a browser camera (wxyz, position) orbiting ``look_at``, given
+    the frame camera's rotation ``home_wxyz`` the orbit started from.
+
+    The browser camera's rotation away from the frame camera (axis, angle) is scaled by
+    ``sensitivity`` and clamped at ``max_deg``; the rendered camera has that rotation and keeps the
+    browser's orbit point and distance, so pan and zoom pass through unchanged.  Once the browser
+    camera has turned past max_deg / sensitivity (+ ``slack_deg``), nothing more would change on
+    screen: ``limit_position`` is then the browser camera's centre at exactly that angle (same orbit
+    point and distance), for the app to pull the browser back to, so turning back answers at once.
+    sensitivity 1 and max_deg 180 give the browser camera itself."""
+    R_b = quat_to_matrix(wxyz)
+    R_h = quat_to_matrix(home_wxyz)
+    p = np.asarray(position, np.float64).reshape(3)
+    target = np.asarray(look_at, np.float64).reshape(3)
+    dist = float(np.linalg.norm(target - p))
+    axis, ang = _axis_angle(R_b @ R_h.T)
+    raw = math.degrees(ang)
+    deg = min(raw * sensitivity, max_deg)
+    R_r = _rotation(axis, math.radians(deg)) @ R_h
+    if dist > 0:
+        pos_r = target - dist * R_r[:, 2]
+    else:                                     # no orbit point: turn in place
+        pos_r = p
+    limit = None
+    lim_deg = max_deg / max(sensitivity, 1e-9)
+    if dist > 0 and raw > lim_deg + slack_deg and lim_deg < 180.0:
+        R_l = _rotation(axis, math.radians(lim_deg)) @ R_h
+        limit = target - dist * R_l[:, 2]
+    return GentlePose(matrix_to_quat(R_r), pos_r, raw, deg, limit)
 
 
 def render_size(height: int, aspect: float) -> Tuple[int, int]:
@@ -236,6 +310,23 @@ class ViewerModel:
     def start_camera(self) -> Camera:
         """The training camera of the first frame: where the browser starts."""
         return self.scene.frames[0].camera
+
+    def nearest_frame(self, t: float) -> int:
+        return int(np.argmin(np.abs(self.times - t)))
+
+    def home_pose(self, k: int) -> Dict[str, object]:
+        """Frame k's training camera as the browser's orbit camera: wxyz, position, fov, up (the
+        camera's up, -y in OpenCV) and look_at, the orbit point: straight ahead at the median depth
+        of the Gaussians in front of it (the tissue)."""
+        cam = self.scene.frames[int(k)].camera
+        wxyz, pos, fov = pose_of_camera(cam)
+        R = quat_to_matrix(wxyz)
+        m = self.gaussians.means[:, :3].astype(np.float64)
+        z = (m - pos) @ R[:, 2]
+        ahead = z[z > cam.near]
+        focus = float(np.median(ahead)) if ahead.size else 1.0
+        return {"wxyz": wxyz, "position": pos, "fov": fov, "up": -R[:, 1],
+                "look_at": pos + focus * R[:, 2], "focus": focus}
 
     def frame_at(self, t: float, tol: float) -> Optional[int]:
         """The frame whose time is within ``tol`` of t, else None."""

@@ -3,10 +3,17 @@ and settings, rendered by endowave_cl/viewer.py and streamed as the page's backg
 
 Each connected browser gets a :class:`Session`: a GUI panel (time slider with the frame times
 marked, play / pause, frame stepping, renderer, what to show, resolution, the ground-truth / error /
-tool-mask panes, a status line) and a render thread that wakes when the camera or a setting changes
+tool-mask panes, a "frame camera" button back to the training camera of the frame at the slider,
+a status line) and a render thread that wakes when the camera or a setting changes
 and renders the newest state only (older requests are dropped, so a slow device never queues a
 backlog).  The browser renderer mode sends the 3D Gaussians at the slider time to viser's own splat
 renderer instead and re-sends them when the time changes.
+
+The orbit is gentle (viewer.gentle_pose): the server renderer renders from the browser camera's
+turn away from the frame camera scaled by ORBIT_SENSITIVITY (0.25) and clamped at ORBIT_MAX_DEG
+(30 degrees), and pulls the browser camera back once it has turned past the point where the clamp
+bites (120 degrees), so turning back answers at once.  The browser renderer draws the browser
+camera itself: there the turn is clamped at ORBIT_MAX_DEG by the same pull-back, not scaled.
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from .errors import EndowaveError
-from .viewer import MODES, ViewerModel, ViewResult, ViewState, pose_of_camera
+from .viewer import ORBIT_MAX_DEG, ORBIT_SENSITIVITY, MODES, ViewerModel, ViewResult, ViewState, gentle_pose
 
 TIME_STEP = 0.001                 # slider resolution in normalised time
 PLAY_FRAMES_PER_S = 10.0          # play speed: sequence frames per second of wall time
@@ -85,6 +92,9 @@ class Session:
         self._splat_t: Optional[float] = None
         self._since: Optional[float] = None
         self._error_said = False
+        self.home_frame = 0                                  # the frame camera the orbit turns around
+        self.home_wxyz = m.home_pose(0)["wxyz"]
+        self.orbit_deg = 0.0
         gui = client.gui
         tol = min(TIME_STEP / 2, m.dt_frame / 4)
         self.tol = tol
@@ -94,6 +104,8 @@ class Session:
         self.play = gui.add_button("play", hint="play / pause the sequence")
         self.prev = gui.add_button("previous frame")
         self.next = gui.add_button("next frame")
+        self.home_button = gui.add_button("frame camera", hint="back to the training camera of the frame "
+                                                               "at the slider (the orbit turns around it)")
         self.renderer = gui.add_dropdown("renderer", RENDERERS, initial_value=RENDERERS[0],
                                          hint="server: our OpenCL rasterizer, streamed; browser: the Gaussians "
                                               "at t in viser's WebGL splat renderer (view-dependent colour "
@@ -115,6 +127,7 @@ class Session:
         self.play.on_click(lambda _: self.toggle_play())
         self.prev.on_click(lambda _: self.step_frame(-1))
         self.next.on_click(lambda _: self.step_frame(+1))
+        self.home_button.on_click(lambda _: self.back_to_frame_camera())
         client.camera.on_update(self._on_camera)
         try:     # the browser's first camera message may have come before the callback was attached
             client.camera.update_timestamp      # asserts until a camera message has arrived
@@ -138,6 +151,41 @@ class Session:
         self.have_camera = True
         if self.renderer.value == RENDERERS[0]:     # the browser mode renders camera moves itself
             self._mark_dirty()
+        else:                                       # ... but its turn is clamped, unscaled
+            self.gentle(sensitivity=1.0)
+
+    def gentle(self, sensitivity: float = ORBIT_SENSITIVITY):
+        """The gentle orbit for the browser camera now (viewer.gentle_pose); pulls the browser
+        camera back when it has turned past the point where the clamp bites."""
+        c = self.client.camera
+        g = gentle_pose(np.asarray(c.wxyz), np.asarray(c.position), np.asarray(c.look_at), self.home_wxyz,
+                        sensitivity=sensitivity)
+        if g.limit_position is not None:
+            look_at = np.array(c.look_at)
+            self._set_camera(position=g.limit_position, look_at=look_at)
+        self.orbit_deg = g.deg
+        return g
+
+    def _set_camera(self, position, look_at, up=None, fov=None):
+        c = self.client.camera
+        atomic = getattr(self.client, "atomic", None)
+        with (atomic() if atomic is not None else contextlib.nullcontext()):
+            if up is not None:
+                c.up_direction = tuple(float(v) for v in up)
+            c.position = tuple(float(v) for v in position)      # moves look_at along ...
+            c.look_at = tuple(float(v) for v in look_at)        # ... so set it after
+            if fov is not None:
+                c.fov = float(fov)
+
+    def back_to_frame_camera(self):
+        """Put the browser camera on the training camera of the frame nearest the slider time,
+        looking at the tissue; the gentle orbit turns around it from now on."""
+        k = self.model.nearest_frame(float(self.time.value))
+        home = self.model.home_pose(k)
+        self.home_frame, self.home_wxyz = k, home["wxyz"]
+        if self.have_camera:
+            self._set_camera(home["position"], home["look_at"], home["up"], home["fov"])
+        self._mark_dirty()
 
     def toggle_play(self):
         self.playing = not self.playing
@@ -203,7 +251,8 @@ class Session:
         if self._splat_t is not None:                 # back from the browser mode: drop the splats
             self._splats.remove()
             self._splat_t = None
-        pose = (np.asarray(cam.wxyz), np.asarray(cam.position), float(cam.fov))
+        g = self.gentle()
+        pose = (g.wxyz, g.position, float(cam.fov))
         res = self.model.view(pose, st, float(cam.aspect), self.tol)
         self.client.scene.set_background_image(res.image, format="jpeg", jpeg_quality=JPEG_QUALITY)
         self.last = res
@@ -241,6 +290,9 @@ class Session:
             extra += f" · depth {lo:.3g} (red) to {hi:.3g} (blue)"
         if res.frame is None and (st.show_gt or st.show_error or st.show_mask):
             extra += " · the side panes show at frame times (previous / next frame)"
+        if self.orbit_deg >= 0.5:
+            extra += (f" · turned {self.orbit_deg:.0f}° from frame {self.home_frame}'s camera "
+                      f"(at most {ORBIT_MAX_DEG:.0f}°; 'frame camera' goes back)")
         if "flow_scale_px" in res.info:
             extra += f" · flow to the next frame, saturated at {res.info['flow_scale_px']:.2g} px"
         self.status.content = (f"image {self.images_sent} · t = {res.t:.3f}{where} · {w}x{h} · "
@@ -298,21 +350,14 @@ class ViewerApp:
     def _set_initial_camera(self, server):
         """Every browser starts at the first frame's training camera, looking at the tissue; the
         orbit controls turn around the scene's up = the camera's up (-y in OpenCV)."""
-        cam = self.model.start_camera
-        wxyz, pos, fov = pose_of_camera(cam)
-        from .viewer import quat_to_matrix
-        R = quat_to_matrix(wxyz)
-        m = self.model.gaussians.means[:, :3].astype(np.float64)
-        z = (m - pos) @ R[:, 2]
-        ahead = z[z > cam.near]
-        focus = float(np.median(ahead)) if ahead.size else 1.0     # orbit pivot: the tissue's median depth
-        up = -R[:, 1]
-        server.scene.set_up_direction(tuple(up))
+        home = self.model.home_pose(0)
+        focus = home["focus"]
+        server.scene.set_up_direction(tuple(home["up"]))
         ic = server.initial_camera
-        ic.position = tuple(pos)
-        ic.look_at = tuple(pos + focus * R[:, 2])
-        ic.up = tuple(up)
-        ic.fov = fov
+        ic.position = tuple(home["position"])
+        ic.look_at = tuple(home["look_at"])
+        ic.up = tuple(home["up"])
+        ic.fov = home["fov"]
         ic.near = max(1e-4, focus * 1e-3)
         ic.far = max(1e3, focus * 1e3)
 

@@ -161,3 +161,170 @@ def test_numpy_sh_basis_matches_the_reference():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     for deg in range(4):
         np.testing.assert_allclose(sh_basis_np(d, deg), sh_basis(torch.from_numpy(d), deg).numpy(), atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# the gentle orbit and the way back to the frame camera
+
+def _orbit(wxyz, position, look_at, up, ang):
+    """The browser camera after viser's orbit controls turn it by ``ang`` radians about ``up``
+    through ``look_at`` (camera-controls' azimuth: 2 pi * drag px / canvas height)."""
+    from endowave_cl.viewer import _rotation, matrix_to_quat, quat_to_matrix
+    Q = _rotation(np.asarray(up, np.float64) / np.linalg.norm(up), ang)
+    R = Q @ quat_to_matrix(wxyz)
+    return matrix_to_quat(R), look_at + Q @ (np.asarray(position) - look_at)
+
+
+def _home_camera():
+    from endowave_cl.camera import Camera
+    from endowave_cl.viewer import pose_of_camera, quat_to_matrix
+    R = _random_rotation(np.random.default_rng(7))
+    view = np.eye(4)
+    view[:3, :3], view[:3, 3] = R, (0.3, -0.2, 0.1)
+    cam = Camera(100.0, 100.0, 40.0, 32.0, 80, 64, view)
+    wxyz, pos, _ = pose_of_camera(cam)
+    Rw = quat_to_matrix(wxyz)
+    return wxyz, pos, pos + 5.0 * Rw[:, 2], -Rw[:, 1]
+
+
+def _deg_between(a_wxyz, b_wxyz):
+    from endowave_cl.viewer import quat_to_matrix
+    f = quat_to_matrix(a_wxyz)[:, 2] @ quat_to_matrix(b_wxyz)[:, 2]
+    return math.degrees(math.acos(float(np.clip(f, -1, 1))))
+
+
+@pytest.mark.parametrize("canvas_h", [400, 800, 1200])
+def test_a_120px_drag_turns_the_view_gently(canvas_h):
+    """120 px of drag turns viser's camera 2 pi * 120 / canvas height (54 degrees at 800 px, a
+    grazing view of tissue seen head-on); the rendered view turns ORBIT_SENSITIVITY of that, never
+    more than ORBIT_MAX_DEG, around the same orbit point at the same distance."""
+    from endowave_cl.viewer import ORBIT_MAX_DEG, ORBIT_SENSITIVITY, gentle_pose, quat_to_matrix
+    assert ORBIT_SENSITIVITY == 0.25 and ORBIT_MAX_DEG == 30.0          # the numbers the docstring states
+    wxyz, pos, look_at, up = _home_camera()
+    raw = 2 * math.pi * 120 / canvas_h
+    b_wxyz, b_pos = _orbit(wxyz, pos, look_at, up, raw)
+    g = gentle_pose(b_wxyz, b_pos, look_at, wxyz)
+    turned = _deg_between(g.wxyz, wxyz)
+    assert g.raw_deg == pytest.approx(math.degrees(raw), abs=1e-6)
+    assert turned == pytest.approx(min(0.25 * math.degrees(raw), 30.0), abs=1e-6) and turned <= 30.0 + 1e-9
+    assert g.deg == pytest.approx(turned, abs=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(g.position - look_at), 5.0, rtol=1e-9)   # same distance
+    np.testing.assert_allclose(g.position + 5.0 * quat_to_matrix(g.wxyz)[:, 2], look_at, atol=1e-9)
+    if canvas_h == 800:
+        assert turned == pytest.approx(13.5, abs=1e-6)
+
+
+def test_without_a_turn_pan_and_zoom_pass_through():
+    from endowave_cl.viewer import gentle_pose, quat_to_matrix
+    wxyz, pos, look_at, up = _home_camera()
+    R = quat_to_matrix(wxyz)
+    shift = 0.4 * R[:, 0] - 0.1 * R[:, 1]
+    zoomed = pos + 2.0 * R[:, 2] + shift            # dolly in by 2, pan
+    g = gentle_pose(wxyz, zoomed, look_at + shift, wxyz)
+    np.testing.assert_allclose(g.position, zoomed, atol=1e-9)
+    assert _deg_between(g.wxyz, wxyz) < 1e-6 and g.limit_position is None
+
+
+def test_past_the_clamp_the_browser_camera_is_pulled_back():
+    """Beyond ORBIT_MAX_DEG / ORBIT_SENSITIVITY = 120 degrees (+1 slack) of browser turn nothing
+    changes on screen: limit_position puts the browser camera back at exactly 120 degrees."""
+    from endowave_cl.viewer import gentle_pose
+    wxyz, pos, look_at, up = _home_camera()
+    g = gentle_pose(*_orbit(wxyz, pos, look_at, up, math.radians(119.0)), look_at, wxyz)
+    assert g.limit_position is None and g.deg == pytest.approx(29.75)
+    g = gentle_pose(*_orbit(wxyz, pos, look_at, up, math.radians(150.0)), look_at, wxyz)
+    assert g.deg == pytest.approx(30.0)
+    _, want = _orbit(wxyz, pos, look_at, up, math.radians(120.0))
+    np.testing.assert_allclose(g.limit_position, want, atol=1e-9)
+
+
+class _FakeCamera:
+    """viser's CameraHandle as far as the session uses it (setting position moves look_at along)."""
+
+    def __init__(self, wxyz, position, look_at, up, fov=0.8):
+        self.wxyz, self.position, self.look_at = np.asarray(wxyz), np.asarray(position), np.asarray(look_at)
+        self.up_direction, self.fov, self.aspect = np.asarray(up), fov, 1.25
+
+    def browser_moved(self, wxyz, position, look_at=None):
+        """A camera message from the browser: its state as it is, no setter side effects."""
+        object.__setattr__(self, "wxyz", np.asarray(wxyz))
+        object.__setattr__(self, "position", np.asarray(position))
+        if look_at is not None:
+            object.__setattr__(self, "look_at", np.asarray(look_at))
+
+    def __setattr__(self, k, v):
+        if k == "position" and "position" in self.__dict__:
+            v = np.asarray(v, np.float64)
+            object.__setattr__(self, "look_at", self.look_at + v - self.position)
+        object.__setattr__(self, k, np.asarray(v, np.float64) if k != "fov" else v)
+        if k in ("position", "look_at") and "look_at" in self.__dict__ and "up_direction" in self.__dict__:
+            from endowave_cl.viewer import matrix_to_quat     # what viser's _update_wxyz computes
+            z = self.look_at - self.position
+            z = z / np.linalg.norm(z)
+            y = -(self.up_direction - (self.up_direction @ z) * z)
+            y = y / np.linalg.norm(y)
+            object.__setattr__(self, "wxyz", matrix_to_quat(np.stack([np.cross(y, z), y, z], 1)))
+
+
+def _session_on_two_frames():
+    """A viewer_app.Session without viser: a model of two frames whose cameras differ, a fake
+    client camera at frame 0's camera."""
+    import threading
+    import types
+
+    from endowave_cl.camera import Camera
+    from endowave_cl.gaussians import Gaussians
+    from endowave_cl.viewer import ViewerModel, quat_to_matrix
+    from endowave_cl.viewer_app import Session
+
+    def cam(tx):
+        view = np.eye(4)
+        view[:3, 3] = (tx, 0.0, 0.0)
+        return Camera(100.0, 100.0, 40.0, 32.0, 80, 64, view)
+    model = ViewerModel.__new__(ViewerModel)
+    model.scene = types.SimpleNamespace(frames=[types.SimpleNamespace(camera=cam(0.0), time=0.0),
+                                                types.SimpleNamespace(camera=cam(-0.5), time=1.0)])
+    model.times = np.array([0.0, 1.0])
+    g = Gaussians.random(300, seed=0)
+    g.means[:, :3] = np.random.default_rng(0).normal(size=(300, 3)) * 0.2 + (0, 0, 4.0)   # tissue at z ~ 4
+    model.gaussians = g
+    s = Session.__new__(Session)
+    s.model, s.dirty, s.pending_since, s.have_camera = model, threading.Event(), None, True
+    h0 = model.home_pose(0)
+    s.home_frame, s.home_wxyz, s.orbit_deg = 0, h0["wxyz"], 0.0
+    s.client = types.SimpleNamespace(camera=_FakeCamera(h0["wxyz"], h0["position"], h0["look_at"], h0["up"]))
+    s.time = types.SimpleNamespace(value=0.0)
+    assert quat_to_matrix(h0["wxyz"])[:, 2] @ (0, 0, 1) > 0.999 and 3.5 < h0["focus"] < 4.5
+    return s, model
+
+
+def test_frame_camera_button_restores_the_training_camera_of_the_current_frame():
+    from endowave_cl.viewer import pose_of_camera
+    s, model = _session_on_two_frames()
+    c = s.client.camera
+    w, p = _orbit(c.wxyz, c.position, c.look_at, c.up_direction, 1.2)           # a wild drag ...
+    c.browser_moved(w, p + 0.3, c.look_at + 0.3)                                  # ... and a pan
+    c.fov = 1.3
+    s.time.value = 0.9                         # the slider nearest frame 1
+    s.back_to_frame_camera()
+    wxyz, pos, fov = pose_of_camera(model.scene.frames[1].camera)
+    np.testing.assert_allclose(c.position, pos, atol=1e-9)
+    assert _deg_between(c.wxyz, wxyz) < 1e-6 and c.fov == pytest.approx(fov)
+    np.testing.assert_allclose(c.look_at, model.home_pose(1)["look_at"], atol=1e-9)
+    assert s.home_frame == 1 and s.dirty.is_set()
+    g = s.gentle()                             # and the view rendered from there is that camera
+    np.testing.assert_allclose(g.position, pos, atol=1e-9)
+    assert g.deg < 1e-6
+
+
+def test_session_renders_the_gentle_view_and_pulls_the_browser_back():
+    s, _ = _session_on_two_frames()
+    c = s.client.camera
+    home_wxyz = s.home_wxyz
+    c.browser_moved(*_orbit(c.wxyz, c.position, c.look_at, c.up_direction, 2 * math.pi * 120 / 800))
+    g = s.gentle()
+    assert _deg_between(g.wxyz, home_wxyz) == pytest.approx(13.5, abs=1e-3)
+    c.browser_moved(*_orbit(c.wxyz, c.position, c.look_at, c.up_direction, math.radians(100.0)))
+    g = s.gentle()                             # 154 degrees of browser turn: 30 on screen, pulled back to 120
+    assert g.deg == pytest.approx(30.0)
+    assert _deg_between(c.wxyz, home_wxyz) == pytest.approx(120.0, abs=1e-3)
