@@ -10,8 +10,11 @@ resumes from its newest checkpoint).  A task that *fails* (the command reports a
 retried: the runner reports it.
 
 * ``RayExecutor``: one Ray task per (scene, stage), scheduled by Ray on the CPU / GPU resources the
-  manifest asks for; Ray's own ``max_retries`` re-runs tasks whose worker died.  The task runs
-  in-process in the Ray worker (``tasks.run_task``), so a killed worker is a killed training.
+  manifest asks for and spread over the cluster's nodes (Ray's SPREAD strategy: Ray's default packs
+  tasks onto the driver's node until half of it is busy, while a training task keeps a whole
+  OpenCL device busy whatever CPUs it asks for); Ray's own ``max_retries`` re-runs tasks whose
+  worker or node died.  The task runs in-process in the Ray worker (``tasks.run_task``), so a
+  killed worker is a killed training; its result names the Ray node that ran it (``node``).
 * ``PoolExecutor``: a plain process pool without Ray: at most ``workers`` child processes
   (``python -m endowave_cl.batch.tasks``), one per task, re-launched when killed by a signal.
 """
@@ -41,6 +44,18 @@ def _package_parent() -> str:
     return str(Path(__file__).resolve().parents[2])
 
 
+def _run_task_on_ray_node(spec: dict) -> dict:
+    """tasks.run_task in a Ray worker; the result also names the Ray node (its id) that ran it."""
+    from .tasks import run_task
+    res = run_task(spec)
+    try:
+        import ray
+        res["node"] = ray.get_runtime_context().get_node_id()
+    except Exception:  # noqa: BLE001  the node is for the record only
+        pass
+    return res
+
+
 def _failed(key, kind: str, error: str) -> dict:
     scene, stage = key
     return {"ok": False, "kind": kind, "error": error, "scene": scene, "stage": stage}
@@ -68,8 +83,7 @@ class RayExecutor:
                 raise EndowaveError(f"cannot start or reach {where}: {first}") from None
             self.started_here = True
         self.local = not address      # workers on this machine: give them this package's path
-        from .tasks import run_task
-        self._remote = ray.remote(run_task)
+        self._remote = ray.remote(_run_task_on_ray_node)
         self._refs: Dict[object, Tuple[str, str]] = {}
 
     def describe(self) -> str:
@@ -90,7 +104,7 @@ class RayExecutor:
             env["PYTHONPATH"] = os.pathsep.join(p for p in (_package_parent(), os.environ.get("PYTHONPATH")) if p)
         ref = self._remote.options(
             num_cpus=self.resources["cpus"], num_gpus=self.resources["gpus"],
-            max_retries=self.resources["retries"], retry_exceptions=False,
+            max_retries=self.resources["retries"], retry_exceptions=False, scheduling_strategy="SPREAD",
             runtime_env={"env_vars": env}, name=f"endowave {spec['stage']} {spec['scene']}").remote(spec)
         self._refs[ref] = key
 
