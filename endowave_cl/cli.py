@@ -6,7 +6,9 @@ present are offered, so ``--help`` lists exactly what works.
 """
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 
 from . import __version__
 
@@ -103,20 +105,27 @@ def _interrupted(name: str, e: KeyboardInterrupt) -> int:
 
 def main(argv=None) -> int:
     # signal handling first: a Ctrl-C or SIGTERM during the imports and the argument parsing below
-    # (the first ~0.3 s of every command) is one line and exit 130 / 143, never a traceback
-    import signal
-    import threading
-    old_sigterm = None
-    if threading.current_thread() is threading.main_thread():
-        old_sigterm = signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143, not a silent kill
+    # (the first ~0.3 s of every command) is one line and exit 130 / 143, never a traceback.  While
+    # they run, a signal is only noted (an exception raised inside an import can surface as another
+    # error, or be printed and ignored by the import machinery) and acted on right after them.
     name = "endowave-cl"
+    old = {}
+    pending = []
     try:
         try:
+            if threading.current_thread() is threading.main_thread():
+                for s in (signal.SIGINT, signal.SIGTERM):
+                    old[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
             import warnings
             # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
             warnings.filterwarnings("ignore", message="Non-empty compiler output")
             parser = build_parser()
-            args = parser.parse_args(argv)
+            args = parser.parse_args(argv) if not pending else None
+            if old:     # from here a signal interrupts at once (train turns it into save-and-stop)
+                signal.signal(signal.SIGINT, old[signal.SIGINT])
+                signal.signal(signal.SIGTERM, _on_sigterm)   # a message and exit 143, not a silent kill
+            if pending:
+                raise Terminated() if signal.SIGTERM in pending else KeyboardInterrupt()
             if not getattr(args, "command", None):
                 parser.print_help()
                 return 2
@@ -128,8 +137,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as e:    # a second one while the first was reported
         return _interrupted(name, e)
     finally:
-        if old_sigterm is not None:
-            signal.signal(signal.SIGTERM, old_sigterm)
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def _run(args, name: str) -> int:
