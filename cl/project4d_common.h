@@ -581,7 +581,7 @@ P4_FN p4f p4_log_upper(p4f x) {
  * test): opac G >= ALPHA_MIN needs d^T cov2d^-1 d <= q = 2 ln(opac / ALPHA_MIN), i.e. |dx| <=
  * sqrt(q a), |dy| <= sqrt(q c) (a, c the 2D covariance's diagonal).  q is bounded from above
  * (p4_log_upper plus TIGHT_Q_PAD) and the box widened by TIGHT_SLACK and TIGHT_PAD pixels, so it
- * holds the rasterizers' cull box (cull_box in rasterize.cl, with its own margins) with room for
+ * holds the rasterizers' cull box (cull_box in blend.h, with its own margins) with room for
  * rounding: the tiles it drops hold no pixel that any Gaussian-pixel test would keep, and the image
  * and gradients are those of the 3-sigma rect.  The extents are capped at the 3-sigma radius (the
  * rect never grows).  Opacities below ALPHA_MIN (with TIGHT_OPAC_SLACK) contribute nowhere: empty

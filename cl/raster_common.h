@@ -79,12 +79,11 @@ inline void add_gradient(int k, int g, float v, volatile __global float *v_means
     volatile __global float *v_features,/* [N, C] */                                      \
     __global float *v_entry             /* [M, NV] per sorted entry (DETERMINISTIC only) */
 
-/* The local arrays of a batch of n staged Gaussians (both forward kernels). */
+/* The local arrays of a batch of n staged Gaussians (all four kernels; each adds its own). */
 #define RASTER_BATCH_LOCALS(n)                                                             \
     __local float2 l_mean[n];                                                              \
     __local float4 l_cop[n];            /* (a, b, c, opac) */                              \
     __local float l_feat[(n) * C];                                                         \
-    __local float l_thr[n];             /* power threshold of the early skip */            \
-    __local float4 l_box[n]             /* cull box (xmin, xmax, ymin, ymax) */
+    __local float l_thr[n]              /* power threshold of the early skip */
 
 #endif

@@ -17,85 +17,8 @@
  * endowave_cl/reference/rasterize.py): -DC=<channels>, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP.
  * Pixel centre convention: pixel (i, j) has centre (i + 0.5, j + 0.5).
  */
-#include "raster_common.h"   /* exp_nonpos, TileWork, the shared arguments */
+#include "blend.h"   /* the blend step, skip_threshold, cull_box, build_sub_lists; raster_common.h */
 
-/* The helpers below are shared with rasterize_bwd.cl, which includes this file with
- * RASTERIZE_HELPERS_ONLY defined, so both passes make the same skip decisions. */
-
-/* Exponent of the 2D Gaussian at offset d = mean - pixel; cop = (a, b, c, opac), the conic
- * (inverse 2D covariance) entries inv00, inv01, inv11. */
-inline float gauss_power(float4 cop, float2 d) {
-    return -0.5f * (cop.x * d.x * d.x + cop.z * d.y * d.y) - cop.y * d.x * d.y;
-}
-
-/* exp_nonpos: raster_common.h */
-
-/* An upper bound of ln(x) for a normal x > 0 without a call (PoCL calls log out of line):
- * x = 2^e m, m in [1, 2), and log2(m) <= p(m - 1.5) + LOG2_POLY_UP, with p the cubic least-squares
- * fit to log2 on [1, 2] below, lifted by its largest shortfall there (5.4e-4, float32 evaluation
- * included) and 2e-4 more: at most 2.1e-3 above log2(m), 1.5e-3 above ln(x).  (project4d's
- * p4_log_upper, the tangent alone, is up to 0.09 above: enough for its tile rect.) */
-#define LOG2_POLY_UP 7.4e-4f
-inline float ln_upper(float x) {
-    const int bits = as_int(x);
-    const float e = as_float((bits >> 23) | 0x4B000000) - (8388608.0f + 127.0f);   /* exponent, exact */
-    const float t = as_float((bits & 0x007fffff) | 0x3f800000) - 1.5f;             /* m - 1.5, exact */
-    const float p = ((0.15391242f * t - 0.33688030f) * t + 0.96116853f) * t + 0.58537829f;
-    return 0.693147181f * (e + (p + LOG2_POLY_UP));
-}
-
-/* Early skip without exp: alpha = min(ALPHA_MAX, opac exp(power)) < ALPHA_MIN whenever
- * power < log(ALPHA_MIN / opac) - SKIP_MARGIN.  SKIP_MARGIN (in log units, i.e. a 0.1% factor on
- * alpha) is far above the rounding of exp, so the skip never drops a Gaussian the exact test
- * keeps.  The log is taken from below, -ln_upper(opac / ALPHA_MIN) (at most 1.5e-3 lower): a lower
- * threshold only sends a few more pairs to the exact test, which skips them, so the results are
- * those of the exact log.  opac < ALPHA_MIN can never contribute: threshold +inf. */
-#define SKIP_MARGIN 1e-3f
-inline float skip_threshold(float opacity) {
-    return opacity >= ALPHA_MIN ? -ln_upper(opacity / ALPHA_MIN) - SKIP_MARGIN : INFINITY;
-}
-
-/* Sub-block culling.  The tile is split into SUB x SUB pixel blocks; per batch, each block gets the
- * ordered list of the batch's Gaussians whose box can reach one of its pixel centres, and a pixel
- * walks only its block's list.  The box bounds the ellipse power >= skip threshold, i.e.
- * d^T A d <= q with q = -2 thr: |dx| <= sqrt(q (A^-1)_xx) = sqrt(q c / det), |dy| <= sqrt(q a / det);
- * widened by BOX_SLACK (relative) and BOX_PAD (pixels) against rounding.  Outside it every pixel
- * would skip the Gaussian anyway, so the result is the same as walking the whole tile list.
- * A conic that is not positive definite gets an infinite box (no culling). */
-#define SUB 4
-#define SUBS_PER_ROW (TILE / SUB)
-#define N_SUB (SUBS_PER_ROW * SUBS_PER_ROW)
-#define BOX_SLACK 1.001f
-#define BOX_PAD 0.01f
-inline float4 cull_box(float2 mean, float4 cop, float thr) {   /* (xmin, xmax, ymin, ymax) */
-    if (!(thr < 0.0f)) return (float4)(INFINITY, -INFINITY, INFINITY, -INFINITY);   /* never */
-    const float det = cop.x * cop.z - cop.y * cop.y;
-    if (!(det > 0.0f && cop.x > 0.0f && cop.z > 0.0f))
-        return (float4)(-INFINITY, INFINITY, -INFINITY, INFINITY);                  /* always */
-    const float q = -2.0f * thr;
-    const float ex = sqrt1(q * cop.z / det) * BOX_SLACK + BOX_PAD;   /* sqrt1: common.h */
-    const float ey = sqrt1(q * cop.x / det) * BOX_SLACK + BOX_PAD;
-    return (float4)(mean.x - ex, mean.x + ex, mean.y - ey, mean.y + ey);
-}
-
-/* Work-item blk < N_SUB fills the list of sub-block blk (tile origin x0, y0 in pixels) with the
- * indices j < count (<= 256, so they fit a uchar) whose box holds one of the block's pixel
- * centres, in increasing j.  List blk starts at l_list + blk * stride. */
-inline void build_sub_lists(int blk, int count, int x0, int y0, __local const float4 *l_box,
-                            __local uchar *l_list, __local int *l_len, int stride) {
-    if (blk >= N_SUB) return;
-    const float bx0 = (float)(x0 + (blk % SUBS_PER_ROW) * SUB) + 0.5f, bx1 = bx0 + (float)(SUB - 1);
-    const float by0 = (float)(y0 + (blk / SUBS_PER_ROW) * SUB) + 0.5f, by1 = by0 + (float)(SUB - 1);
-    __local uchar *list = l_list + blk * stride;
-    int n = 0;
-    for (int j = 0; j < count; j++) {
-        const float4 bb = l_box[j];
-        if (bb.x <= bx1 && bb.y >= bx0 && bb.z <= by1 && bb.w >= by0) list[n++] = (uchar)j;
-    }
-    l_len[blk] = n;
-}
-
-#ifndef RASTERIZE_HELPERS_ONLY
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
 void rasterize(__global const float2 *means2d,   /* [N, 2] */
                __global const float *conic,      /* [N, 3] (a, b, c) */
@@ -104,6 +27,7 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
                RASTER_LIST_ARGS, RASTER_FWD_OUT_ARGS)
 {
     RASTER_BATCH_LOCALS(TILE_PIXELS);
+    __local float4 l_box[TILE_PIXELS];           /* cull box (xmin, xmax, ymin, ymax) */
     __local uchar l_list[N_SUB * TILE_PIXELS];   /* per sub-block lists of batch indices */
     __local int l_len[N_SUB];
     __local int l_done[2];                       /* done-pixel counters, used alternately */
@@ -163,12 +87,11 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
                 const int j = mine[i];
                 const float4 cop = l_cop[j];
                 const float2 d = l_mean[j] - (float2)(px, py);
-                const float power = gauss_power(cop, d);
+                const float power = blend_power(cop, d.x, d.y);   /* blend.h */
                 if (power > 0.0f || power < l_thr[j]) continue;
-                const float raw = cop.w * exp_nonpos(power);
-                const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
+                const float alpha = blend_alpha(cop.w, blend_G(power));
                 if (alpha < ALPHA_MIN) continue;
-                const float t_next = t_cur * (1.0f - alpha);
+                const float t_next = blend_behind(t_cur, alpha);
                 if (t_next < T_STOP) { stop = true; break; }
                 const float w = alpha * t_cur;
                 for (int c = 0; c < C; c++) a_cur[c] += l_feat[j * C + c] * w;
@@ -191,4 +114,3 @@ void rasterize(__global const float2 *means2d,   /* [N, 2] */
         last_out[p] = last;
     }
 }
-#endif  /* RASTERIZE_HELPERS_ONLY */

@@ -7,8 +7,8 @@
  *
  * Transmittance is recovered by division, as in 3DGS: starting from T = T_final, for each
  * contributor k (back to front) T_k = T_{k+1} / (1 - alpha_k); alpha_k <= ALPHA_MAX keeps the
- * divisor >= 1 - ALPHA_MAX.  The skip tests (power > 0, alpha < ALPHA_MIN) use the same functions
- * as the forward kernel (included from rasterize.cl), so the same Gaussians count as contributors.
+ * divisor >= 1 - ALPHA_MAX.  The skip tests (power > 0, alpha < ALPHA_MIN) use the same blend step
+ * as the forward kernel (blend.h), so the same Gaussians count as contributors.
  *
  * With S_c = sum_{j behind k} f_jc alpha_j T_j (the colour composited behind k):
  *   d out_c / d alpha_k     = f_kc T_k - S_c / (1 - alpha_k)
@@ -19,7 +19,7 @@
  *
  * Reduction, without local atomics: the Gaussians of a batch are taken one at a time (a loop that
  * is uniform over the group).  For Gaussian j, only the SUB x SUB sub-blocks that its cull box
- * reaches (a 16-bit mask, see rasterize.cl) take part; Gaussians that reach none are skipped by
+ * reaches (a 16-bit mask, sub_block_mask in blend.h) take part; Gaussians that reach none are skipped by
  * the whole group.  (1) each pixel of a reached sub-block writes its NV gradient terms (zeros
  * where the Gaussian is skipped) to its own slot of l_pix; (2) one work-item per (value, sub-block) sums that sub-block's 16 slots; (3) one
  * work-item per value sums the sub-block partials and adds the total to the global gradient with
@@ -35,9 +35,7 @@
  *
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN (set by endowave_cl/ops/rasterize.py).
  */
-#include "common.h"
-#define RASTERIZE_HELPERS_ONLY
-#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box, SUB, N_SUB */
+#include "blend.h"   /* the blend step, skip_threshold, cull_box, sub_block_mask, SUB, N_SUB */
 
 #if SUB != 4
 #error "the sub-block sums below read rows of a sub-block with vload4"
@@ -50,22 +48,6 @@
 #define NV (6 + C)   /* gradient values per Gaussian: mean (2), conic (3), opac (1), features (C) */
 #define BATCH 128    /* Gaussians per batch; keeps local memory under 32 KiB (Oclgrind) for C <= 9 */
 
-/* Bit s set when the cull box (xmin, xmax, ymin, ymax) reaches a pixel centre of sub-block s of the
- * tile with pixel origin (x0, y0). */
-inline int sub_block_mask(float4 bb, int x0, int y0) {
-    int cols = 0, rows = 0;
-    for (int s = 0; s < SUBS_PER_ROW; s++) {
-        const float bx0 = (float)(x0 + s * SUB) + 0.5f, bx1 = bx0 + (float)(SUB - 1);
-        const float by0 = (float)(y0 + s * SUB) + 0.5f, by1 = by0 + (float)(SUB - 1);
-        if (bb.x <= bx1 && bb.y >= bx0) cols |= 1 << s;
-        if (bb.z <= by1 && bb.w >= by0) rows |= 1 << s;
-    }
-    int mask = 0;
-    for (int r = 0; r < SUBS_PER_ROW; r++)
-        if (rows & (1 << r)) mask |= cols << (r * SUBS_PER_ROW);
-    return mask;
-}
-
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
 void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    __global const float *conic,      /* [N, 3] */
@@ -73,11 +55,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                    __global const float *features,   /* [N, C] */
                    RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
-    __local float2 l_mean[BATCH];
-    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
-    __local float l_feat[BATCH * C];
+    RASTER_BATCH_LOCALS(BATCH);
     __local int l_gid[BATCH];
-    __local float l_thr[BATCH];
     __local int l_mask[BATCH];                   /* sub-blocks reached by each Gaussian */
     __local float l_pix[NV * TILE_PIXELS];       /* [NV, pixel] gradient terms of one Gaussian */
     __local float l_part[NV * N_SUB];            /* [NV, sub-block] partial sums */
@@ -143,14 +122,13 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                 bool used = false;
                 const float4 cop = l_cop[j];
                 const float2 d = l_mean[j] - (float2)(px, py);
-                const float power = gauss_power(cop, d);
+                const float power = blend_power(cop, d.x, d.y);   /* blend.h */
                 if (j < j_end && power <= 0.0f && power >= l_thr[j]) {
-                    const float G = exp_nonpos(power);
-                    const float raw = cop.w * G;
-                    const float alpha = raw < ALPHA_MAX ? raw : ALPHA_MAX;
+                    const float G = blend_G(power);
+                    const float alpha = blend_alpha(cop.w, G);
                     if (alpha >= ALPHA_MIN) {
                         used = true;
-                        const float inv_om = 1.0f / (1.0f - alpha);
+                        const float inv_om = blend_inv_om(alpha);
                         T = T * inv_om;                  /* transmittance in front of Gaussian j */
                         const float w = alpha * T;
                         float v_al = va * T_fin * inv_om; /* d L / d alpha_j */
@@ -161,13 +139,8 @@ void rasterize_bwd(__global const float2 *means2d,   /* [N, 2] */
                             l_pix[(6 + c) * TILE_PIXELS + lid] = vo[c] * w;
                         }
                         float gr[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-                        if (raw <= ALPHA_MAX) {          /* the clamp blocks the gradient */
-                            const float v_power = v_al * alpha;
-                            gr[0] = -v_power * (cop.x * d.x + cop.y * d.y);
-                            gr[1] = -v_power * (cop.z * d.y + cop.y * d.x);
-                            gr[2] = -0.5f * v_power * d.x * d.x;
-                            gr[3] = -v_power * d.x * d.y;
-                            gr[4] = -0.5f * v_power * d.y * d.y;
+                        if (blend_open(cop.w, G)) {      /* the clamp blocks the gradient */
+                            blend_power_grad(v_al * alpha, cop, d.x, d.y, gr);
                             gr[5] = v_al * G;
                         }
                         for (int k = 0; k < 6; k++) l_pix[k * TILE_PIXELS + lid] = gr[k];

@@ -9,8 +9,8 @@
  * the block at pixel (tx * TILE + lx * BW, ty * TILE + ly * BH).
  *
  * The tile's Gaussians are staged through local memory in batches of FWD_BATCH, front to back.  Per
- * lane the compositing is exactly that of rasterize.cl (same helper functions, same operation
- * order; vexp_nonpos equals exp_nonpos bit for bit): skip power > 0, alpha = min(ALPHA_MAX, opac G),
+ * lane the compositing is exactly that of rasterize.cl (the blend step of blend.h, written once for
+ * float and floatVW; vexp_nonpos equals exp_nonpos bit for bit): skip power > 0, alpha = min(ALPHA_MAX, opac G),
  * skip alpha < ALPHA_MIN, stop before a Gaussian that would bring T below T_STOP.  Lanes are masked
  * (vector ?:): a lane that skips or is done adds nothing; the work-item leaves the batch once all its
  * lanes are done, and the group stops loading batches once every work-item is done.  The walk keeps
@@ -25,74 +25,9 @@
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DT_STOP (as rasterize.cl), -DVW=<2|4|8|16>,
  * -DBW (block width, divides VW).
  */
-#include "common.h"
-#include "vexp.h"
-#define RASTERIZE_HELPERS_ONLY
-#include "rasterize.cl"   /* gauss_power, exp_nonpos, skip_threshold, cull_box */
+#include "blend.h"        /* the blend step, skip_threshold, cull_box */
+#include "raster_vec.h"   /* BW, BH, BX, BY, N_WI, lane_dx, REC4, stage_gaussian, box_hits8 */
 
-/* Per-Gaussian record, written once per call by rasterize_vec_prep (one Gaussian per work-item)
- * and gathered per tile entry by the rasterize_vec kernels: one contiguous read instead of four
- * scattered arrays, and the skip threshold (a bound of a log) and cull box (two sqrt) computed once
- * per Gaussian instead of once per tile entry.  REC4 float4 per Gaussian:
- *   [0] (a, b, c, opac)   [1] cull box (xmin, xmax, ymin, ymax)   [2] (mean x, mean y, thr, 0)
- *   [3 ..] features[0 .. C-1], zero-padded to a multiple of 4. */
-#define REC4 (3 + (C + 3) / 4)
-
-/* Gaussian g's record as entry j of a batch of nb staged in local memory, the cull box by
- * coordinate (l_box [4, nb]: xmin, xmax, ymin, ymax) so that box_hits8 tests 8 entries at once. */
-inline void stage_gaussian(__global const float4 *rec, int g, int j, int nb, __local float2 *l_mean,
-                           __local float4 *l_cop, __local float *l_feat, __local float *l_thr,
-                           __local float *l_box) {
-    __global const float4 *r = rec + g * REC4;
-    l_cop[j] = r[0];
-    const float4 bb = r[1];
-    l_box[j] = bb.x; l_box[nb + j] = bb.y; l_box[2 * nb + j] = bb.z; l_box[3 * nb + j] = bb.w;
-    const float4 m = r[2];
-    l_mean[j] = m.xy;
-    l_thr[j] = m.z;
-    __global const float *f = (__global const float *)(r + 3);
-    for (int c = 0; c < C; c++) l_feat[j * C + c] = f[c];
-}
-
-/* Gaussian g's record (its first and last cache line) asked for into L1 / into L2 only; no-ops
- * where the build has no prefetch (the callers leave out the address loads there: HAVE_PREFETCH) */
-inline void prefetch_record(__global const float4 *rec, int g) {
-    PREFETCH(rec + g * REC4);
-    PREFETCH(rec + g * REC4 + REC4 - 1);
-}
-inline void prefetch_record_l2(__global const float4 *rec, int g) {
-    PREFETCH_L2(rec + g * REC4);
-    PREFETCH_L2(rec + g * REC4 + REC4 - 1);
-}
-
-/* entry j of l_box [4, nb]: a box that reaches no block (entries past a batch's end, up to a
- * multiple of 8, which box_hits8 reads) */
-inline void stage_no_box(int j, int nb, __local float *l_box) {
-    l_box[j] = MAXFLOAT; l_box[nb + j] = -MAXFLOAT; l_box[2 * nb + j] = MAXFLOAT; l_box[3 * nb + j] = -MAXFLOAT;
-}
-
-/* 8 consecutive floats of local memory (element loads, merged into one vector load; PoCL calls
- * vload8 out of line) */
-inline float8 lload8(__local const float *p) {
-    return (float8)(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
-}
-
-/* bit l set where lane l of the mask t (-1 / 0 per lane) is set */
-inline uint mask_bits8(int8 t) {
-    const int8 b = t & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
-    const int4 c = b.lo | b.hi;
-    const int2 d = c.lo | c.hi;
-    return (uint)(d.x | d.y);
-}
-
-/* bit i set where the cull box of entry j0 + i of l_box [4, nb] reaches the pixel centres
- * [px0, px1] x [py0, py1] (i < 8) */
-inline uint box_hits8(__local const float *l_box, int nb, int j0, float px0, float px1, float py0, float py1) {
-    return mask_bits8((lload8(l_box + j0) <= px1) & (lload8(l_box + nb + j0) >= px0) &
-                      (lload8(l_box + 2 * nb + j0) <= py1) & (lload8(l_box + 3 * nb + j0) >= py0));
-}
-
-#ifndef RASTERIZE_VEC_HELPERS_ONLY
 __kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
                                  __global const float *conic,      /* [N, 3] (a, b, c) */
                                  __global const float *opac,       /* [N] */
@@ -112,45 +47,17 @@ __kernel void rasterize_vec_prep(__global const float2 *means2d,   /* [N, 2] */
     __global float *f = (__global float *)(r + 3);
     for (int c = 0; c < 4 * (REC4 - 3); c++) f[c] = c < C ? features[g * C + c] : 0.0f;
 }
-#endif
 
-/* A work-item's VW pixels form a BW x BH block (lane l: pixel (l % BW, l / BW) of the block). */
-#ifndef BW
-#define BW VW
-#endif
-#define BH (VW / BW)
-#if (TILE % BW) != 0 || (VW % BW) != 0 || (TILE % BH) != 0
-#error "BW must divide VW and TILE, VW / BW must divide TILE"
-#endif
-#define BX (TILE / BW)                /* work-items per row of blocks */
-#define BY (TILE / BH)                /* rows of blocks */
-#define N_WI (BX * BY)                /* work-items per group */
 #define FWD_BATCH TILE_PIXELS         /* Gaussians per local-memory batch */
 #if FWD_BATCH % 32 != 0
 #error "a work-item's hit mask is FWD_BATCH / 32 words"
 #endif
 
-/* Lane geometry: pixel offsets of the lanes inside the block. */
-inline intV lane_dx(void) {
-    int v[VW];
-    for (int l = 0; l < VW; l++) v[l] = l % BW;
-    return vloadI(0, v);
-}
-inline intV lane_dy(void) {
-    int v[VW];
-    for (int l = 0; l < VW; l++) v[l] = l / BW;
-    return vloadI(0, v);
-}
-
-#ifndef RASTERIZE_VEC_HELPERS_ONLY
 __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                    RASTER_LIST_ARGS, RASTER_FWD_OUT_ARGS)
 {
-    __local float2 l_mean[FWD_BATCH];
-    __local float4 l_cop[FWD_BATCH];             /* (a, b, c, opac) */
-    __local float l_feat[FWD_BATCH * C];
-    __local float l_thr[FWD_BATCH];              /* power threshold of the early skip */
+    RASTER_BATCH_LOCALS(FWD_BATCH);
     __local float l_box[4 * FWD_BATCH];          /* cull boxes by coordinate (stage_gaussian) */
     __local int l_done[2];                       /* done-work-item counters, used alternately */
 
@@ -231,14 +138,12 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
                     const float2 mean = l_mean[j];
                     const floatV dx = (floatV)(mean.x) - px;
                     const floatV dy = (floatV)(mean.y) - py;
-                    /* gauss_power, lane for lane */
-                    const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+                    const floatV power = blend_power_v(cop, dx, dy);   /* blend.h */
                     intV use = ~done_cur & (power <= 0.0f) & (power >= l_thr[j]);
                     if (!VANY(use)) continue;
-                    const floatV raw = cop.w * vexp_nonpos(power);
-                    const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                    const floatV alpha = blend_alpha_v(cop.w, blend_G_v(power));
                     use &= alpha >= ALPHA_MIN;
-                    const floatV t_next = t_cur * (1.0f - alpha);
+                    const floatV t_next = blend_behind_v(t_cur, alpha);
                     const intV stop = use & (t_next < T_STOP);
                     done_cur |= stop;
                     use &= ~stop;
@@ -286,4 +191,3 @@ void rasterize_vec(__global const float4 *rec,       /* [N, REC4] from rasterize
         }
     }
 }
-#endif  /* RASTERIZE_VEC_HELPERS_ONLY */

@@ -7,8 +7,8 @@
  * (tx * TILE + lx * BW, ty * TILE + ly * BH)) in the lanes of floatVW vectors.
  * The group walks the tile's list back to front, from the tile's largest `last` down to entry 0, in
  * batches of BATCH Gaussians staged in local memory; a lane takes part for the entries before its
- * own `last`.  Per lane the skip tests are those of the forward pass (same helpers, vexp_nonpos ==
- * exp_nonpos bit for bit), so the same Gaussians count as contributors.
+ * own `last`.  Per lane the skip tests are those of the forward pass (the blend step of blend.h,
+ * vexp_nonpos == exp_nonpos bit for bit), so the same Gaussians count as contributors.
  *
  * Per batch, the walk over the work-item's hits (back to front) carries T and D and keeps, for each
  * hit that adds, the weights alpha T and the two terms that need the carried values; the gradient
@@ -28,10 +28,8 @@
  * Build options: -DC, -DALPHA_MAX, -DALPHA_MIN, -DVW, -DBATCH (Gaussians per batch: the host picks
  * the largest that fits local memory, since l_part4 holds BATCH * N_WI * NSV float4), -DDETERMINISTIC.
  */
-#include "common.h"
-#include "vexp.h"
-#define RASTERIZE_VEC_HELPERS_ONLY
-#include "rasterize_vec.cl"   /* REC4, stage_gaussian, box_hits8; gauss_power, skip_threshold, ... */
+#include "blend.h"        /* the blend step (forward and adjoint) */
+#include "raster_vec.h"   /* BW, BH, BX, BY, N_WI, lane_dx, REC4, stage_gaussian, box_hits8 */
 
 #ifndef DETERMINISTIC
 #define DETERMINISTIC 0
@@ -85,11 +83,8 @@ __kernel __attribute__((reqd_work_group_size(BX, BY, 1)))
 void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from rasterize_vec_prep */
                        RASTER_LIST_ARGS, RASTER_BWD_ARGS)
 {
-    __local float2 l_mean[BATCH];
-    __local float4 l_cop[BATCH];                 /* (a, b, c, opac) */
-    __local float l_feat[BATCH * C];
+    RASTER_BATCH_LOCALS(BATCH);
     __local int l_gid[BATCH];
-    __local float l_thr[BATCH];
     __local float l_box[4 * BATCH];              /* cull boxes by coordinate: xmin[BATCH], xmax, ymin, ymax */
     __local float4 l_part4[BATCH * N_WI * NSV];  /* [BATCH, N_WI, NSV] per-work-item sums */
     __local bmask l_wrote[N_WI];                 /* bit j: the work-item wrote its slot of entry j */
@@ -177,16 +172,15 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                 const float2 mean = l_mean[j];
                 const floatV dx = (floatV)(mean.x) - px;
                 const floatV dy = (floatV)(mean.y) - py;
-                const floatV power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+                const floatV power = blend_power_v(cop, dx, dy);   /* blend.h */
                 intV use = lane_mask((intV)(b * BATCH + j) < last) & lane_mask(power <= 0.0f) &
                            lane_mask(power >= l_thr[j]);   /* lane_mask: vexp.h */
                 if (!VANY(use)) continue;
-                const floatV G = vexp_nonpos(power <= 0.0f ? power : (floatV)(0.0f));
-                const floatV raw = cop.w * G;
-                const floatV alpha = raw < ALPHA_MAX ? raw : (floatV)(ALPHA_MAX);
+                const floatV G = blend_G_v(power <= 0.0f ? power : (floatV)(0.0f));
+                const floatV alpha = blend_alpha_v(cop.w, G);
                 use &= lane_mask(alpha >= ALPHA_MIN);
                 if (!VANY(use)) continue;
-                const floatV inv_om = 1.0f / (1.0f - alpha);
+                const floatV inv_om = blend_inv_om_v(alpha);
                 t_cur = use != 0 ? t_cur * inv_om : t_cur;   /* T in front of j */
                 const floatV w = use != 0 ? alpha * t_cur : (floatV)(0.0f);
                 /* d L / d alpha_j = (v_alpha T_final - D) / (1 - alpha) + T_j sum_c vo_c f_c */
@@ -196,7 +190,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                 const floatV v_al = (va_tf - d_cur) * inv_om + t_cur * dot;
                 d_cur += dot * w;
                 /* the ALPHA_MAX clamp blocks the gradient to power and opac */
-                const intV grad = use & lane_mask(raw <= ALPHA_MAX);
+                const intV grad = use & lane_mask(blend_open_v(cop.w, G));
                 k_w[n_kept] = w;
                 k_vp[n_kept] = grad != 0 ? v_al * alpha : (floatV)(0.0f);
                 k_vg[n_kept] = grad != 0 ? v_al * G : (floatV)(0.0f);
@@ -212,11 +206,7 @@ void rasterize_vec_bwd(__global const float4 *rec,       /* [N, REC4] from raste
                 const floatV dy = (floatV)(mean.y) - py;
                 const floatV w = k_w[h], v_power = k_vp[h];
                 floatV term[4 * NSV];   /* per-lane gradient terms, zeros past NV */
-                term[0] = -v_power * (cop.x * dx + cop.y * dy);
-                term[1] = -v_power * (cop.z * dy + cop.y * dx);
-                term[2] = -0.5f * v_power * dx * dx;
-                term[3] = -v_power * dx * dy;
-                term[4] = -0.5f * v_power * dy * dy;
+                blend_power_grad_v(v_power, cop, dx, dy, term);
                 term[5] = k_vg[h];
 #pragma unroll
                 for (int c = 0; c < C; c++) term[6 + c] = vo[c] * w;

@@ -1,7 +1,10 @@
-"""The rasterizers' scalar helpers that decide skips (cl/rasterize.cl), built into a test kernel:
+"""The rasterizers' scalar helpers that decide skips (cl/blend.h), built into a test kernel:
 ln_upper bounds ln from above by at most 1.5e-3, so skip_threshold never lies above the exact
-log(ALPHA_MIN / opac) - SKIP_MARGIN (a skip it makes, the exact test would make too)."""
+log(ALPHA_MIN / opac) - SKIP_MARGIN (a skip it makes, the exact test would make too).  And the
+four rasterizer kernels share that header, not each other's files."""
 from __future__ import annotations
+
+import re
 
 import numpy as np
 import pyopencl.array as cla
@@ -10,10 +13,10 @@ import pytest
 from conftest import small
 from endowave_cl.layout import ALPHA_MIN
 from endowave_cl.ops.rasterize import _options
+from endowave_cl.runtime import kernel_dir
 
 SOURCE = """
-#define RASTERIZE_HELPERS_ONLY
-#include "rasterize.cl"
+#include "blend.h"
 __kernel void helpers(__global const float *x, __global const float *opac, const int n,
                       __global float *ln_up, __global float *thr) {
     const int i = get_global_id(0);
@@ -47,3 +50,31 @@ def test_ln_upper_and_skip_threshold_bound_the_exact_log(rt):
     exact = np.log(np.float64(np.float32(ALPHA_MIN)) / opac[keep].astype(np.float64)) - 1e-3
     assert np.all(t[keep] <= exact) and np.all(t[keep] > exact - 1.6e-3)
     assert np.all(np.isinf(t[~keep]) & (t[~keep] > 0))
+
+
+RASTER_KERNELS = ("rasterize.cl", "rasterize_bwd.cl", "rasterize_vec.cl", "rasterize_vec_bwd.cl")
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"', re.MULTILINE)
+
+
+def _includes(path):
+    return _INCLUDE.findall(path.read_text())
+
+
+def test_no_kernel_file_includes_another_kernel_file():
+    """Shared kernel code lives in headers: no .cl (or .h) file includes a .cl file (issue 59)."""
+    kdir = kernel_dir()
+    bad = {p.name: inc for p in sorted(kdir.iterdir()) if p.suffix in (".cl", ".h")
+           for inc in _includes(p) if inc.endswith(".cl")}
+    assert not bad, f"kernel files that include a .cl file (move the shared code to a header): {bad}"
+
+
+def test_the_four_rasterizers_share_one_blend_header():
+    """The blend step, the skip and the cull helpers are written once, in blend.h, which all four
+    rasterizer kernels include; the kernels do not write the power or the alpha clamp themselves."""
+    kdir = kernel_dir()
+    for name in RASTER_KERNELS:
+        text = (kdir / name).read_text()
+        assert "blend.h" in _includes(kdir / name), name
+        for own in ("cop.y * dx * dy", "cop.y * d.x * d.y", "? raw : ", "inline float skip_threshold",
+                    "inline float4 cull_box"):
+            assert own not in text, f"{name} writes {own!r} itself: use blend.h"

@@ -124,6 +124,33 @@ def test_program_cache_memory_and_disk(rt, tmp_path, monkeypatch):
     assert len(list(tmp_path.glob("util-*.bin"))) == 2
 
 
+def test_cache_key_follows_every_included_header(rt, tmp_path, monkeypatch):
+    """A disk-cache entry is keyed by the kernel file and every header it includes, however deep
+    (rasterize_vec_bwd.cl -> raster_vec.h -> blend.h -> raster_common.h -> exp_poly.h): an edited
+    header gives a new key, so a binary built from the old one is never loaded; a header the file
+    does not include changes nothing."""
+    import shutil
+    kdir = tmp_path / "cl"
+    shutil.copytree(R.kernel_dir(), kdir)
+    monkeypatch.setenv(R.ENV_KERNEL_DIR, str(kdir))
+    r = R.Runtime(rt.entry, disk_cache=False)
+    assert r.kdir == kdir
+    files = ("rasterize.cl", "rasterize_bwd.cl", "rasterize_vec.cl", "rasterize_vec_bwd.cl")
+
+    def keys():
+        return {f: r._cache_key(kdir / f, ("-DC=6",)) for f in files}
+
+    before = keys()
+    (kdir / "adam.cl").write_text((kdir / "adam.cl").read_text() + "\n/* not included */\n")
+    assert keys() == before
+    for header, reaches in (("blend.h", files), ("exp_poly.h", files),
+                            ("raster_vec.h", ("rasterize_vec.cl", "rasterize_vec_bwd.cl"))):
+        (kdir / header).write_text((kdir / header).read_text() + "\n/* edited */\n")
+        after = keys()
+        assert {f for f in files if after[f] != before[f]} == set(reaches), header
+        before = after
+
+
 def _fill_works(r, prg):
     import pyopencl as cl
     x = np.zeros(10, np.float32)
