@@ -9,6 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
+from endowave_cl import device as D
 from endowave_cl import runtime as R
 
 
@@ -43,11 +44,11 @@ def test_default_choice_passes_over_devices_that_cannot_build(monkeypatch):
     first = R.choose_device(None, entries)
     assert R.build_problem(first) is None   # the real check, on the device the suite runs on
     why = "error: unknown target CPU 'generic': " + R.UNKNOWN_CPU_HELP
-    monkeypatch.setattr(R, "build_problem", lambda e: why if e.index == first.index else None)
+    monkeypatch.setattr(D, "build_problem", lambda e: why if e.index == first.index else None)
     others = [e for e in entries if e.index != first.index and not e.is_oclgrind]
     if others:
         assert R.choose_device(None, entries).index != first.index
-    monkeypatch.setattr(R, "build_problem", lambda e: None if e.is_oclgrind else why)
+    monkeypatch.setattr(D, "build_problem", lambda e: None if e.is_oclgrind else why)
     with pytest.raises(R.OpenCLUnavailable) as ei:
         R.choose_device(None, entries)
     msg = str(ei.value)
@@ -73,7 +74,9 @@ def test_devices_command_says_which_cannot_build(monkeypatch, capsys):
     monkeypatch.delenv(R.ENV_DEVICE, raising=False)
     monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
     monkeypatch.setattr(devices, "_rasterizer", lambda e: "(not probed in this test)")
-    monkeypatch.setattr(R, "build_problem", lambda e: None if e.is_oclgrind else "error: unknown target CPU 'generic'")
+    fake = lambda e: None if e.is_oclgrind else "error: unknown target CPU 'generic'"   # noqa: E731
+    monkeypatch.setattr(D, "build_problem", fake)   # what choose_device calls
+    monkeypatch.setattr(R, "build_problem", fake)   # what the devices command imports
     with pytest.raises(R.OpenCLUnavailable, match="no OpenCL device here can build kernels"):
         devices.run(SimpleNamespace(device=None, build_test=False))
     out = capsys.readouterr().out
@@ -361,3 +364,49 @@ def test_ensure_opencl_script_checks_and_changes_nothing_where_a_device_builds(m
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"ensure_opencl: {R.choose_device(None).label} builds kernels" in r.stdout
     assert "installing" not in r.stdout
+
+
+# ------------------------------------------------------------------------------ the parts, the env
+def test_device_choice_and_program_cache_are_apart():
+    """runtime.py holds the Runtime; device choice (device.py) and the program cache
+    (program_cache.py) are modules of their own below it, and runtime re-exports their names."""
+    import ast
+    from pathlib import Path
+
+    from endowave_cl import device as D
+    from endowave_cl import program_cache as PC
+    pkg = Path(R.__file__).parent
+
+    def imports(mod):
+        out = set()
+        for node in ast.walk(ast.parse((pkg / f"{mod}.py").read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                out |= {node.module} if node.module else {a.name for a in node.names}
+        return out
+
+    assert imports("device") == {"env"}
+    assert imports("program_cache") == {"env", "device"}
+    assert R.choose_device is D.choose_device and R.DeviceCaps is D.DeviceCaps
+    assert R.kernel_dir is PC.kernel_dir and R._read_cache_entry is PC._read_cache_entry
+
+
+def test_every_environment_variable_is_listed_once():
+    """env.py lists every ENDOWAVE_* variable the package reads, each with its meaning, and parses
+    each (PARSERS); no module names a variable env.py does not know; the README names only known
+    variables and points at env.py for the list (it has no list of its own to keep in step)."""
+    import re
+    from pathlib import Path
+
+    from endowave_cl import env
+    name = re.compile(r"ENDOWAVE_[A-Z0-9_]*[A-Z0-9]")
+    listed = re.findall(r"^  (ENDOWAVE_[A-Z0-9_]+) +\S", env.__doc__, re.MULTILINE)
+    assert len(listed) == len(set(listed))
+    assert set(listed) == set(env.PARSERS), "env.py's docstring table and PARSERS differ"
+    pkg = Path(env.__file__).parent
+    named = {n for f in pkg.rglob("*.py") for n in re.findall(r"[\"'](ENDOWAVE_[A-Z0-9_]+)[\"']", f.read_text())}
+    assert named <= set(env.PARSERS), f"read outside env.PARSERS: {sorted(named - set(env.PARSERS))}"
+    readme = (pkg.parent / "README.md").read_text()
+    device = readme[readme.index("## Choosing a device"):]
+    device = device[:device.index("\n## ", 1)]
+    assert set(name.findall(readme)) <= set(env.PARSERS)
+    assert "endowave_cl/env.py" in device
