@@ -55,3 +55,17 @@ def test_test_frames_are_refused_without_test(tmp_path):
     assert r.returncode != 0 and "not the validation frames" in r.stderr and "35.00" not in r.stdout
     r = _tool(*args, "--test")
     assert r.returncode == 0 and "test frames" in r.stdout
+
+
+def test_summary_covers_every_finished_run_of_the_tag(tmp_path):
+    """Two invocations of one tag trained side by side (one scene each) share summary.json: each
+    writes the runs of both."""
+    for name in ("traction", "pushing"):
+        (tmp_path / "shared" / "data" / "endonerf_clips" / name).mkdir(parents=True)
+    _fake_run(tmp_path / "cand" / "traction_s0", "validation", 35.0, 36.0, 0.3)
+    _fake_run(tmp_path / "cand" / "pushing_s0", "validation", 33.0, 34.0, 3.0)
+    r = _tool("--tag", "cand", "--out", tmp_path, "--scenes", "pushing", "--summary", "--shared", tmp_path / "shared")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((tmp_path / "cand" / "summary.json").read_text())
+    assert sorted(summary["scenes"]) == ["_by_motion", "pushing", "traction"]
+    assert [x["scene"] for x in summary["runs"]] == ["traction", "pushing"]

@@ -175,6 +175,17 @@ def main(argv=None) -> int:
             if a.summary and not (run / "eval.json").is_file():
                 continue
             runs[(name, seed)] = train_and_eval(name, seed, a, shared, base)
+    # the summary covers every finished run of the candidate, also those of scenes or seeds that
+    # another invocation of the same tag trained (two scenes trained side by side share summary.json)
+    for name, (rel, _) in SCENES.items():
+        if rel is not None and not (shared / rel).is_dir():
+            continue
+        for ev in sorted(base.glob(f"{name}_s*/eval.json")):
+            seed = ev.parent.name[len(name) + 2:]
+            if seed.isdigit():
+                runs.setdefault((name, int(seed)), ev.parent)
+    runs = dict(sorted(runs.items(), key=lambda kv: (list(SCENES).index(kv[0][0]), kv[0][1])))
+    names = list(dict.fromkeys(name for name, _ in runs))
     if not runs:
         print("no finished runs")
         return 1
