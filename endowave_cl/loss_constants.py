@@ -11,10 +11,6 @@ SSIM_C1 = 0.01 ** 2    # (K1 L)^2 with K1 = 0.01, data range L = 1
 SSIM_C2 = 0.03 ** 2    # (K2 L)^2 with K2 = 0.03
 
 FLOW_HUBER_DELTA = 4.0   # pixels: the flow error beyond which the flow loss grows linearly
-# The per-Gaussian flow loss (cl/gaussian_flow.cl) supervises a Gaussian only where it is on the
-# visible surface: its depth at most this fraction behind the rendered surface depth there (the
-# surface's own Gaussians spread around that alpha-weighted mean; a tool's shadowed tissue does not).
-GAUSSIAN_FLOW_DEPTH_TOL = 0.05
 
 
 def gaussian_window_1d(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.ndarray:

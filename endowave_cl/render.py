@@ -101,15 +101,12 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
 
 
 def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features, v_alpha=None,
-                    v_gaussian_features=None,
                     densify_stats: Optional[Dict[str, object]] = None, timed: bool = False,
                     deterministic: Optional[bool] = None, sh_factors: bool = False) -> Dict[str, object]:
     """Gradients of every parameter from the gradient images.
 
     v_features: cla [H, W, C] gradient of the loss w.r.t. the composited channels;
-    v_alpha: cla [H, W] or None (zero); v_gaussian_features: cla [N, C] or None: the gradient of
-    losses defined on project4d's per-Gaussian features (train/device_losses.py::gaussian_flow_enqueue),
-    added to what rasterize_bwd returns for them; densify_stats: optional dict of device arrays
+    v_alpha: cla [H, W] or None (zero); densify_stats: optional dict of device arrays
     grad_accum [N] f32, count [N] i32, max_radius [N] f32 updated in place.
     deterministic: bit-identical gradients across runs (per-entry terms summed in tile order
     instead of float atomics; see ops/rasterize.py). None: on for devices without a reported SIMT
@@ -119,7 +116,7 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     passes it to DeviceAdam) instead of the full [N, NT+1, K, 3] array.
     A render with select=True: the gradients have one row per selected Gaussian ([L, ...], row i
     belonging to Gaussian out.live.rows[i]; every other Gaussian's gradient is 0), the densification
-    statistics (still [N]) are updated at those rows, and v_gaussian_features is [L, C].
+    statistics (still [N]) are updated at those rows.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
     import pyopencl.array as cla
@@ -147,9 +144,6 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
         accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,
                                  densify_stats["grad_accum"], densify_stats["count"], densify_stats["max_radius"],
                                  rows=rows)
-    if v_gaussian_features is not None and len(params["means"]):
-        from .ops.util import add_inplace
-        add_inplace(rt, v2d["v_features"], v_gaussian_features)
     grads = project4d_bwd(rt, params, cam, out.t, out.t_flow, p, v2d["v_means2d"], v2d["v_conic"],
                           v2d["v_opac"], v2d["v_features"], sh_factors=sh_factors)
     _tick(rt, out.timings, "project_bwd", t0, timed)

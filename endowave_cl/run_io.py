@@ -22,7 +22,7 @@ class LoadedRun:
 def load_run(run_dir, scene_override=None) -> LoadedRun:
     from .data.scene import apply_split, load_scene
     import sys
-    from .train.config import TrainConfig
+    from .train.config import TrainConfig, drop_removed
     from .checkpoint import load_newest_good_checkpoint
     run = Path(run_dir)
     cfg_file = run / "config.json"
@@ -40,6 +40,8 @@ def load_run(run_dir, scene_override=None) -> LoadedRun:
     d.pop("scene", None)
     if not isinstance(scene_path, str):
         raise EndowaveError(f"{cfg_file}: no scene path recorded; pass --scene")
+    # keys of earlier versions (config.py REMOVED) are ignored, so that an old run still opens
+    d = drop_removed(d, str(cfg_file), note=lambda m: print(m, file=sys.stderr))
     cfg = TrainConfig.from_dict(d, str(cfg_file))
     # the newest checkpoint that reads back (an older one, with a warning, if the newest is corrupt)
     ck, state = load_newest_good_checkpoint(run, log=lambda m: print(m, file=sys.stderr))

@@ -10,8 +10,7 @@ the late learning-rate decay (no_lr_anneal; both schedules start at densify_unti
 warps sampled bilinearly instead of bicubically (bilinear_between), with the in-between target
 fused from three flow estimators (fused_between: between_flows = dis_fine,farneback), with the
 in-between target's pixels moving on straight paths instead of curved ones (straight_between:
-between_path = linear), or with the optional
-per-Gaussian flow loss added (with_gaussian_flow, weight 0.05), on one scene, for each seed;
+between_path = linear), on one scene, for each seed;
 evaluates each on the test frames (PSNR both forms, SSIM, LPIPS-Alex, the neighbour-mean and
 DIS-interpolation baselines (bilinear and bicubic warps), the rendered flow's EPE where the scene has gt_flow/,
 the depth error where it has depth) and prints one row per variant with the mean and spread over
@@ -34,7 +33,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # quality_run
 
 VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wavelet": "false"},
             "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"},
-            "plain_adam": {"adam_skip_culled": "false"}, "with_gaussian_flow": {"lambda_flow_gaussian": "0.05"},
+            "plain_adam": {"adam_skip_culled": "false"},
             "no_between_fade": {"between_anneal_final": "1"}, "no_lr_anneal": {"lr_anneal_final": "1"},
             "bilinear_between": {"between_sampler": "linear"},
             "fused_between": {"between_flows": "dis_fine,farneback"},

@@ -66,7 +66,7 @@ def main(argv=None) -> int:
         bend = (bend_around(sc, [flows[m] for m in order], order, lambda a, b, m: est(sc.frames[a].image, sc.frames[b].image, m),
                             c.between_flow_splat and c.between_push == "fused")
                 if c.between_path == "quadratic" else None)
-        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler,
+        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, c.between_sampler,
                                         [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
                                         fwd if c.between_model_splat else None, c.between_flow_splat,
                                         c.between_splat, c.between_push, bend=bend)[0], 0, 1)

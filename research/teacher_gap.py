@@ -65,7 +65,7 @@ def main(argv=None) -> int:
             fused = run.cfg.between_flow_splat and run.cfg.between_push == "fused"
             bend = pair_bend(sc, ordered, ordered.index(pair), sources,
                              (lambda i: consistent_flows(sources(ordered[i]))) if fused else None)
-        target = (between_target(sc, pair, s, run.cfg.between_two_flow, run.cfg.between_sampler,
+        target = (between_target(sc, pair, s, run.cfg.between_sampler,
                                  extra_pairs(others, pair), fuse=run.cfg.between_fuse,
                                  flow_splat=run.cfg.between_flow_splat, splat=run.cfg.between_splat,
                                  push=run.cfg.between_push, bend=bend)[0]

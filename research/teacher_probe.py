@@ -14,8 +14,8 @@ sets of frames and scored against the real frame (PSNR, dB):
   The triplets are a check that uses no test frame.
 
 Each variant changes in-between keys of the run's config (between_fuse, between_flow_splat,
-between_splat, between_push, between_model, between_model_splat, between_sampler, between_two_flow,
-between_flows, between_path: with "quadratic" the flows to the nearest training frames beyond the pair
+between_splat, between_push, between_model, between_model_splat, between_sampler, between_flows,
+between_path: with "quadratic" the flows to the nearest training frames beyond the pair
 are estimated here too); the model itself is the run's.  Prints the model's own render too.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 KEYS = ("between_fuse", "between_flow_splat", "between_splat", "between_push", "between_model", "between_model_splat",
-        "between_sampler", "between_two_flow", "between_flows", "between_path")
+        "between_sampler", "between_flows", "between_path")
 
 
 def main(argv=None) -> int:
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
                 bend = (bend_around(sc, [flows[m] for m in order], order, estimated,
                                     c.between_flow_splat and c.between_push == "fused")
                         if c.between_path == "quadratic" else None)
-                image = between_target(sc, flows[c.flow_method], 0.5, c.between_two_flow, c.between_sampler,
+                image = between_target(sc, flows[c.flow_method], 0.5, c.between_sampler,
                                        [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
                                        fwd if c.between_model_splat else None, c.between_flow_splat,
                                        c.between_splat, c.between_push, bend=bend)[0]

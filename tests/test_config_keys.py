@@ -511,15 +511,6 @@ def _losses(rt, cfg):
     return parts
 
 
-def _gaussian_flow_effect(scene, rt, tmp_path):
-    """lambda_flow_gaussian weights the per-Gaussian flow term in a training step's total (0: off)."""
-    parts = {}
-    for lam in (0.0, 0.5):
-        tr = _trainer(scene, rt, tmp_path / str(lam), use_flow=True, lambda_flow_gaussian=lam)
-        k = next(k for k in tr.scene.train_indices if tr.targets[k].next_time is not None)
-        parts[lam] = tr.train_step(k)
-    assert "flow_gaussian" not in parts[0.0] and parts[0.5]["flow_gaussian"] > 0
-    assert parts[0.5]["total"] - parts[0.0]["total"] == pytest.approx(0.5 * parts[0.5]["flow_gaussian"], rel=1e-4)
 
 
 def _between_prob(scene, rt, tmp_path):
@@ -621,74 +612,12 @@ def _wavelet_changes(b, n):
     assert n["l1"] == b["l1"]
 
 
-def _between_two_flow(scene, rt, tmp_path):
-    """between_two_flow: the drawn in-between target is the two-flow construction of the pair."""
-    from endowave_cl.train.between import between_target
-    for two_flow in (False, True):
-        tr = _trainer(scene, rt, tmp_path / str(two_flow), iterations=0, between_prob=1.0,
-                      between_two_flow=two_flow, between_flow_splat=False)   # it makes backward warps
-        _, _, dev = tr._between.draw(np.random.default_rng(3))
-        rng = np.random.default_rng(3)
-        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-        s = float(rng.uniform(0.0, 1.0))
-        want, other = (between_target(scene, pair, s, two_flow=f, **_target_kw(tr))[0]
-                       for f in (two_flow, not two_flow))
-        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
-        assert not np.allclose(dev.image.get(), other, atol=1e-4)
 
 
-def _flow_anneal_final(scene, rt, tmp_path):
-    """flow_anneal_final: the flow losses' weights are the config's until densify_until, then fall
-    linearly to that fraction at the last step; at 0 the last step's loss has no flow term."""
-    tr = _trainer(scene, rt, tmp_path, iterations=100, densify_until=60, flow_anneal_final=0.2,
-                  lambda_flow=0.05, lambda_flow_gaussian=0.1)
-    for step, f in ((0, 1.0), (60, 1.0), (80, 0.6), (100, 0.2)):
-        c = tr.loss_config(step)
-        assert c.lambda_flow == pytest.approx(0.05 * f) and c.lambda_flow_gaussian == pytest.approx(0.1 * f)
-    assert tr.loss_config(10) is tr.cfg
-    tr = _trainer(scene, rt, tmp_path / "zero", iterations=3, densify_until=1, flow_anneal_final=0.0,
-                  use_flow=True)
-    k = scene.train_indices[0]
-    assert "flow" in tr.train_step(k)        # step 0: the full weight
-    tr.step = 3
-    assert "flow" not in tr.train_step(k)    # the last step: weight 0, no flow term
 
 
-def _flow_photo_max(scene, rt, tmp_path):
-    """flow_photo_max: the flow loss's weights are the consistency test's times the photometric
-    test at that threshold; 0 leaves the consistency test's alone."""
-    from endowave_cl.data.flow import photometric_consistent
-    off = _trainer(scene, rt, tmp_path / "off", iterations=1, use_flow=True)
-    on = _trainer(scene, rt, tmp_path / "on", iterations=1, use_flow=True, flow_photo_max=0.01)
-    k = scene.train_indices[0]
-    pair = off.flows[k]
-    np.testing.assert_array_equal(off.targets[k].dev.flow_w.get(), pair.valid)
-    photo = photometric_consistent(scene.frames[k].image, scene.frames[pair.dst].image, pair.flow, 0.01)
-    assert 0 < (photo & (pair.valid > 0)).sum() < (pair.valid > 0).sum()   # the test removes some, not all
-    np.testing.assert_array_equal(on.targets[k].dev.flow_w.get(), pair.valid * photo)
-    assert on.targets[k].dev.n_flow < off.targets[k].dev.n_flow
 
 
-def _between_by_time(scene, rt, tmp_path):
-    """between_by_time: a training pair is drawn in proportion to the time it spans (here the pair
-    around the held-out frame 1 spans twice its neighbours' time); off: uniformly over the pairs."""
-    from endowave_cl.train.between import between_target
-    for by_time in (False, True):
-        tr = _trainer(scene, rt, tmp_path / str(by_time), iterations=0, between_prob=1.0, between_by_time=by_time)
-        pairs = tr._between.pairs
-        span = np.array([scene.frames[p.dst].time - scene.frames[p.src].time for p in pairs])
-        assert span.max() > 1.5 * span.min()                 # the scene's split gives unequal spans
-        if by_time:
-            np.testing.assert_allclose(tr._between.pair_prob, span / span.sum(), rtol=1e-12)
-        else:
-            assert tr._between.pair_prob is None
-        # the trainer's sampler draws exactly that pair and fraction from the same generator
-        rng = np.random.default_rng(7)
-        k = int(rng.choice(len(pairs), p=span / span.sum())) if by_time else int(rng.integers(len(pairs)))
-        s = float(rng.uniform(0.0, 1.0))
-        _, t, dev = tr._between.draw(np.random.default_rng(7))
-        want_img = between_target(scene, pairs[k], s, **_target_kw(tr))[0]
-        np.testing.assert_allclose(dev.image.get(), want_img, atol=1e-6)
 
 
 def _between_s(scene, rt, tmp_path):
@@ -1037,17 +966,12 @@ CHECKS = {
     "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.9)),
     "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
-    "lambda_flow_gaussian": _gaussian_flow_effect,
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
-    "between_two_flow": _between_two_flow,
     "between_sampler": _between_sampler,
-    "between_by_time": _between_by_time,
     "between_s": _between_s,
     "between_path": _between_path,
     "between_levels": _between_levels,
-    "flow_anneal_final": _flow_anneal_final,
-    "flow_photo_max": _flow_photo_max,
     "between_flows": _between_flows,
     "between_model": _between_model,
     "between_fuse": _between_fuse,
@@ -1111,3 +1035,36 @@ def test_opacity_reset_keeps_statistics_and_other_moments(scene, rt, tmp_path):
     assert not after["exp_avg"]["opacity"].any() and not after["exp_avg_sq"]["opacity"].any()
     for n, a in stats.items():
         np.testing.assert_array_equal(tr.stats[n].get(), a)
+
+
+def test_removed_keys_are_refused_as_settings_and_ignored_in_saved_runs(scene, tmp_path, capsys):
+    """A key removed with its code (config.py REMOVED) is refused by --set, a TOML file and a batch
+    manifest's settings, naming the finding; a saved run's config.json that names it still opens,
+    with a note where the run had it on."""
+    from endowave_cl.checkpoint import checkpoint_path, save_checkpoint
+    from endowave_cl.run_io import load_run
+    from endowave_cl.train.config import REMOVED
+    assert not set(REMOVED) & {f.name for f in fields(TrainConfig)}
+    with pytest.raises(EndowaveError, match=r"^override: key 'between_two_flow' was removed .*finding 9"):
+        load_config(None, {"between_two_flow": "true"})
+    toml = tmp_path / "old.toml"
+    toml.write_text("flow_anneal_final = 0.5\n")
+    with pytest.raises(EndowaveError, match=r"old.toml: key 'flow_anneal_final' was removed .*finding 17"):
+        load_config(str(toml))
+    with pytest.raises(EndowaveError, match="key 'lambda_flow_gaussian' was removed"):
+        TrainConfig.from_dict({"lambda_flow_gaussian": 0.0})
+    for name, on in (("off", {k: off for k, (off, _) in REMOVED.items()}),
+                     ("on", {"between_by_time": True, "flow_photo_max": 0.03})):
+        d = tmp_path / name
+        d.mkdir()
+        cfg = TrainConfig(iterations=7)
+        (d / "config.json").write_text(json.dumps({**cfg.to_dict(), **on, "scene": str(scene.path)}))
+        save_checkpoint(checkpoint_path(d, 1), Gaussians.random(3), None, 1, {**cfg.to_dict(), **on})
+        capsys.readouterr()
+        assert load_run(d).cfg == cfg
+        notes = capsys.readouterr().err
+        if name == "off":
+            assert "removed" not in notes
+        else:
+            assert "between_by_time = True ignored: key 'between_by_time' was removed" in notes
+            assert "flow_photo_max = 0.03 ignored" in notes and "flow_anneal_final" not in notes

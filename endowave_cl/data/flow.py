@@ -44,7 +44,6 @@ import numpy as np
 
 from ..errors import DataError
 from ..atomic import atomic_directory
-from ..warp import sample_displaced
 from .flo import read_flow_file
 
 METHODS = ("dis", "dis_fine", "farneback", "deepflow", "tvl1")
@@ -150,15 +149,6 @@ def fb_consistent(fw: np.ndarray, bw: np.ndarray) -> np.ndarray:
     lhs = (diff ** 2).sum(-1)
     rhs = FB_REL * ((fw ** 2).sum(-1) + (bw_at ** 2).sum(-1)) + FB_ABS
     return (lhs < rhs) & _inside(x, y, w, h)
-
-
-def photometric_consistent(image0: np.ndarray, image1: np.ndarray, fw: np.ndarray, max_diff: float) -> np.ndarray:
-    """[H, W] bool: where image1 sampled at p + fw(p) (bilinear) matches image0 at p within
-    max_diff, the mean absolute difference over the colour channels (images in [0, 1]).  A flow
-    that carries a pixel onto different colour follows something other than the tissue: a moving
-    specular highlight, the tool, a failure of the estimator."""
-    diff = np.abs(np.asarray(image0, np.float32) - sample_displaced(image1, np.asarray(fw, np.float32)))
-    return (diff.mean(-1) if diff.ndim == 3 else diff) <= max_diff
 
 
 def valid_mask(fw, bw=None, mask0=None, mask1=None) -> np.ndarray:

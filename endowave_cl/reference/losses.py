@@ -170,35 +170,3 @@ def image_losses_ref(pred: Mapping[str, torch.Tensor], target: Mapping[str, Opti
         parts["wavelet"] = _f(w)
     parts["total"] = _f(total)
     return total, parts
-
-
-def gaussian_flow_loss_ref(means2d, opac, radius, depth, features, render, alpha, flow_gt, flow_w,
-                           coef: float, delta: float, depth_tol: float, ch_depth: int, ch_flow: int):
-    """numpy reference of cl/gaussian_flow.cl (its header gives the definition): every visible
-    Gaussian's own flow features[i, ch_flow:ch_flow+2] against flow_gt at the pixel under its centre.
-
-    means2d [N, 2], opac [N], radius [N], depth [N], features [N, C]; render [H, W, CF], alpha
-    [H, W], flow_gt [H, W, 2], flow_w [H, W].  Returns (sum_i w_i rho_i, v_features [N, C] with
-    coef * w_i * rho'(e_i) in the flow channels and 0 elsewhere), in float64."""
-    import numpy as np
-    means2d, features = np.asarray(means2d, np.float64), np.asarray(features, np.float64)
-    H, W = np.asarray(alpha).shape
-    N, C = features.shape
-    v = np.zeros((N, C))
-    x, y = means2d[:, 0], means2d[:, 1]
-    inside = (np.asarray(radius) > 0) & (x >= 0) & (y >= 0) & (x < W) & (y < H)
-    ix = np.where(inside, np.floor(np.where(inside, x, 0)), 0).astype(np.int64)
-    iy = np.where(inside, np.floor(np.where(inside, y, 0)), 0).astype(np.int64)
-    a = np.asarray(alpha, np.float64)[iy, ix]
-    surface = np.where(a > 0, np.asarray(render, np.float64)[iy, ix, ch_depth] / np.where(a > 0, a, 1), 0.0)
-    w = np.asarray(opac, np.float64) * np.asarray(flow_w, np.float64)[iy, ix]
-    w = np.where(inside & (a > 0) & (np.asarray(depth, np.float64) <= (1 + depth_tol) * surface), w, 0.0)
-    e = features[:, ch_flow:ch_flow + 2] - np.asarray(flow_gt, np.float64)[iy, ix]
-    n2 = (e ** 2).sum(1)
-    nrm = np.sqrt(n2)
-    huber = n2 <= delta * delta
-    rho = np.where(huber, n2, 2 * delta * nrm - delta * delta)
-    scale = np.where(huber, 2.0, 2 * delta / np.where(huber, 1.0, nrm))
-    live = w > 0
-    v[:, ch_flow:ch_flow + 2] = np.where(live[:, None], coef * (w * scale)[:, None] * e, 0.0)
-    return float(np.where(live, w * rho, 0.0).sum()), v

@@ -82,7 +82,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from ..warp import sample_displaced, splat_forward, two_flow_displacements
+from ..warp import sample_displaced, splat_forward
 # the in-between modes' names are settings' values, listed in config.py (read from here too)
 from .config import (FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES,  # noqa: F401
                      between_flow_methods)
@@ -249,7 +249,7 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str = "linear",
+def between_target(scene, pair, s: float, sampler: str = "linear",
                    extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
                    model_weight: float = 0.0, fuse: str = "agree",
                    model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
@@ -257,9 +257,7 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
                    pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                    bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
-    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  two_flow:
-    where each frame's pixels are taken from comes from both flows (warp.two_flow_displacements)
-    instead of each frame's own.  sampler: how the frames are sampled between pixels
+    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  sampler: how the frames are sampled between pixels
     (warp.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
     two frames from other estimators, fused with the pair's own (fused_interpolation, as fuse
     says: FUSE_MODES).  model_disp
@@ -275,10 +273,9 @@ def between_target(scene, pair, s: float, two_flow: bool = False, sampler: str =
     with flow_splat, "each" pushes every hypothesis's frames along its own flows, "fused" pushes
     them once along consistent_flows of all the hypotheses (pushed_flows: those flows when they
     were made already), the fused backward prediction filling the rest.  bend: the pair's Bend
-    (pair_bend): every flow moves the pixels along parabolas instead of straight lines (the
-    two_flow backward warps excepted)."""
+    (pair_bend): every flow moves the pixels along parabolas instead of straight lines."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    image, weight = _flow_prediction(f0, f1, pair, s, two_flow, sampler, extra, fuse, flow_splat, splat,
+    image, weight = _flow_prediction(f0, f1, pair, s, sampler, extra, fuse, flow_splat, splat,
                                      push, pushed_flows, bend)
     image, weight = blend_model_prediction(scene, pair, s, image, weight, sampler, model_disp, model_weight,
                                            model_fwd, splat)
@@ -307,7 +304,7 @@ def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.
     return image, weight * ok
 
 
-def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra: Sequence[object], fuse: str,
+def _flow_prediction(f0, f1, pair, s: float, sampler: str, extra: Sequence[object], fuse: str,
                      flow_splat: bool, splat: str, push: str = "each",
                      pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                      bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray]:
@@ -317,9 +314,7 @@ def _flow_prediction(f0, f1, pair, s: float, two_flow: bool, sampler: str, extra
     def backward(item):
         """(W0, W1, ok): the frames sampled backward along estimator h's flows"""
         h, p = item
-        if two_flow:
-            d0, d1 = two_flow_displacements(p.flow, p.flow_bw, s)                # [H, W, 2] each
-        elif bend is not None:
+        if bend is not None:
             g0, g1 = bend.paths(p.flow, p.flow_bw, s, h)
             d0, d1 = -g0, -g1
         else:
@@ -506,10 +501,7 @@ def pair_time(scene, pair, s: float) -> float:
 
 class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair,
-    then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly, or with
-    by_time in proportion to the time it spans, so that every moment of the sequence gets the same share of in-between steps
-    (where a held-out frame splits the training frames, the pair around it spans twice the time of
-    its neighbours).  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
+    then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly.  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
     into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
     prediction splats the frames forward (between_target's model_fwd); flow_splat and splat: as
     between_target's, and push: the fused flows (consistent_flows) are made once per pair.
@@ -520,12 +512,12 @@ class BetweenSampler:
     22).  0: both are rendered to s in every step that needs them.  path (PATHS): "quadratic" bends
     every flow's paths with the pair's Bend (pair_bend, made once per pair)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], two_flow: bool = False, sampler: str = "linear",
-                 extra_flows: Sequence[Dict[int, object]] = (), by_time: bool = False, fuse: str = "agree",
+    def __init__(self, rt, scene, flows: Dict[int, object], sampler: str = "linear",
+                 extra_flows: Sequence[Dict[int, object]] = (), fuse: str = "agree",
                  model_splat: bool = False, flow_splat: bool = False, splat: str = "colour",
                  motion_refresh: int = 0, push: str = "each", s_distribution: str = "uniform",
                  path: str = "linear", levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES):
-        self.rt, self.scene, self.two_flow, self.sampler, self.fuse = rt, scene, two_flow, sampler, fuse
+        self.rt, self.scene, self.sampler, self.fuse = rt, scene, sampler, fuse
         self.levels = int(levels)
         # (pair index, grid point j) -> (image [H, W, 3] float16, weight [H, W] float16): the flow
         # prediction at s = j / levels, kept up to cache_bytes (levels >= 2 only)
@@ -540,12 +532,6 @@ class BetweenSampler:
         self._motion: Dict[int, Tuple[int, np.ndarray, np.ndarray]] = {}   # pair index -> (step, G0, G1)
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
-        self.pair_prob = None                                                   # [P] or uniform
-        if by_time and self.pairs:
-            span = np.array([abs(float(scene.frames[p.dst].time) - float(scene.frames[p.src].time))
-                             for p in self.pairs], np.float64)
-            if span.sum() > 0:
-                self.pair_prob = span / span.sum()
 
     def extra(self, pair) -> List[object]:
         """The further estimators' FlowPairs of the pair's two frames."""
@@ -561,10 +547,7 @@ class BetweenSampler:
         first at the step's own time, then (model_splat) at the pair's two frames' times, unless
         their motion rendered within motion_refresh steps before ``step`` is kept."""
         from .device_losses import prepare_targets
-        if self.pair_prob is None:
-            index = int(rng.integers(len(self.pairs)))
-        else:
-            index = int(rng.choice(len(self.pairs), p=self.pair_prob))
+        index = int(rng.integers(len(self.pairs)))
         pair = self.pairs[index]
         s = level_fraction(draw_fraction(rng, self.s_distribution), self.levels)
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
@@ -612,7 +595,7 @@ class BetweenSampler:
                                                self._fused if fused else None)
             bend = self._bends[index]
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-        image, weight = _flow_prediction(f0, f1, pair, s, self.two_flow, self.sampler, self.extra(pair), self.fuse,
+        image, weight = _flow_prediction(f0, f1, pair, s, self.sampler, self.extra(pair), self.fuse,
                                          self.flow_splat, self.splat, self.push, pushed, bend)
         if j and abs(j - s * self.levels) < 1e-6 and self._cache_left >= image.size * 2 + weight.size * 2:
             kept = (image.astype(np.float16), np.asarray(weight).astype(np.float16))
@@ -625,10 +608,9 @@ class BetweenSampler:
     def from_config(cls, rt, scene, cfg, flows: Dict[int, object],
                     extra_flows: Sequence[Dict[int, object]] = ()) -> "BetweenSampler":
         """The sampler a TrainConfig's between_* keys describe."""
-        return cls(rt, scene, flows, cfg.between_two_flow, cfg.between_sampler, extra_flows, cfg.between_by_time,
-                   cfg.between_fuse, cfg.between_model_splat, cfg.between_flow_splat, cfg.between_splat,
-                   cfg.between_motion_refresh, cfg.between_push, cfg.between_s, cfg.between_path,
-                   cfg.between_levels)
+        return cls(rt, scene, flows, cfg.between_sampler, extra_flows, cfg.between_fuse, cfg.between_model_splat,
+                   cfg.between_flow_splat, cfg.between_splat, cfg.between_motion_refresh, cfg.between_push,
+                   cfg.between_s, cfg.between_path, cfg.between_levels)
 
     def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
         """consistent_flows of pair index's estimators, made once."""

@@ -135,14 +135,6 @@ class TrainConfig:
                                     # pair's flow prediction at a grid point is built once and kept
                                     # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
                                     # that later in-between steps cost little more than plain ones
-    between_by_time: bool = False   # draw the in-between steps' training pair in proportion to the
-                                    # time it spans (every moment of the sequence gets the same
-                                    # share) instead of uniformly over the pairs
-    between_two_flow: bool = False  # the in-between target's warps from both flows of the pair
-                                    # (Super SloMo's intermediate flow, warp.py
-                                    # two_flow_displacements) instead of each frame's own flow;
-                                    # with between_flow_splat, the backward warps that fill what
-                                    # no pixel reaches
     between_sampler: str = "cubic"  # how the in-between target samples the two frames between
                                     # pixels (warp.py SAMPLERS): "cubic" (bicubic) or "linear"
                                     # (bilinear, which at half-pixel offsets averages two pixels
@@ -257,18 +249,6 @@ class TrainConfig:
                                         # costs 0.01, below a typical late L1 of ~0.02-0.05
     flow_huber_delta: float = 4.0       # px: beyond this endpoint error the flow loss grows linearly
                                         # (bounded gradient; see reference/losses.py); inf: pure squared
-    flow_photo_max: float = 0.0         # > 0: the flow loss leaves out the pixels whose flow
-                                        # carries them onto colour more than this different (mean
-                                        # |RGB difference|, images in [0, 1]; data/flow.py
-                                        # photometric_consistent); 0: the consistency test alone
-    flow_anneal_final: float = 1.0      # lambda_flow is multiplied by a factor that falls linearly
-                                        # from 1 at densify_until to this at the last step (1:
-                                        # constant; 0: the run ends on the images alone, the
-                                        # pseudo ground-truth flow having set the motion first)
-    lambda_flow_gaussian: float = 0.0   # not in the paper: the same flow error per visible Gaussian
-                                        # (cl/gaussian_flow.cl), so that the Gaussians of a pixel
-                                        # move together, not only their blend; off by default: its
-                                        # effect on test PSNR is within the seed spread (QUALITY.md)
     lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
                                         # error per sub-band coefficient (MSE scale), weight 1
     use_depth: bool = True
@@ -391,8 +371,42 @@ def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
     return kind(value)
 
 
+# Keys of earlier versions, removed with their code: each reproduced a finding that did not become
+# a default (research/README.md lists them).  {key: (the value that meant "off", the finding)}.
+# A saved run's config.json or checkpoint names them all: opening the run ignores them, with a note
+# where the run had one on; --set, a TOML file or a batch manifest that names one is refused.
+REMOVED = {
+    "between_two_flow": (False, "finding 9"),
+    "between_by_time": (False, "finding 16"),
+    "flow_photo_max": (0.0, "finding 17"),
+    "flow_anneal_final": (1.0, "finding 17"),
+    "lambda_flow_gaussian": (0.0, "finding 5"),
+}
+
+
+def removed_key_text(key: str) -> str:
+    """Why a REMOVED key is no longer a setting, for messages."""
+    return (f"key '{key}' was removed in this version with its code (it served {REMOVED[key][1]} of "
+            f"research/QUALITY.md, which did not become a default)")
+
+
+def drop_removed(values: Mapping[str, Any], source: str, note=None) -> Dict[str, Any]:
+    """values without the REMOVED keys (a saved run's config); note(line) is told of each one whose
+    value was not its "off" value, since the run was trained with a behaviour this version lacks."""
+    out = {}
+    for key, value in values.items():
+        if key in REMOVED:
+            if note is not None and value != REMOVED[key][0]:
+                note(f"{source}: {key} = {value!r} ignored: {removed_key_text(key)}; the run opens without it")
+            continue
+        out[key] = value
+    return out
+
+
 def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_text: bool = False) -> None:
     for key, value in values.items():
+        if key in REMOVED:
+            raise EndowaveError(f"{source}: {removed_key_text(key)}; an older commit has it")
         if key not in _FIELDS:
             raise EndowaveError(f"{source}: unknown key '{key}'{did_you_mean(key)}")
         setattr(cfg, key, _coerce(key, value, source, from_text))
@@ -411,7 +425,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_levels": (0, 1024, True, True), "between_anneal_final": _UNIT, "flow_anneal_final": _UNIT, "flow_photo_max": _NON_NEGATIVE,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_levels": (0, 1024, True, True), "between_anneal_final": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
@@ -422,7 +436,7 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
-    "lambda_flow_gaussian": _NON_NEGATIVE, "sh_degree": (-1, 3, True, True), "flow_max_pixels": _NON_NEGATIVE,
+    "sh_degree": (-1, 3, True, True), "flow_max_pixels": _NON_NEGATIVE,
     # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
     "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,
     "wavelet_weight_lh": _NON_NEGATIVE, "wavelet_weight_hl": _NON_NEGATIVE, "wavelet_weight_hh": _NON_NEGATIVE,

@@ -22,7 +22,7 @@ from typing import Callable, Dict, Optional, Tuple
 import numpy as np
 
 from ..runtime import round_up
-from ..loss_constants import GAUSSIAN_FLOW_DEPTH_TOL, gaussian_window_1d
+from ..loss_constants import gaussian_window_1d
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -107,8 +107,6 @@ class PendingLosses:
     v_features: object                 # cla [H, W, CF]: d total / d features
     sums: Dict[str, object]            # "image": cla [groups, NSUM] f32; "wavelet": cla [partial sums] f32
     finish: Callable[[Dict[str, np.ndarray]], Tuple[float, Dict[str, float]]]   # host sums -> (total, parts)
-    v_gaussian_features: Optional[object] = None   # cla [N, C]: d total / d project4d's per-Gaussian
-                                                   # features (gaussian_flow_enqueue), or None
 
 
 def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
@@ -206,47 +204,3 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
         return float(total), parts
 
     return PendingLosses(v, sums, finish)
-
-
-GFLOW_FILE = "gaussian_flow.cl"
-GFLOW_LOCAL = 64    # work-group size of gaussian_flow_loss (power of two: it reduces its sums)
-
-
-def gaussian_flow_enqueue(rt, out, tgt: DeviceTargets, cfg, channels: Dict[str, int], pending: PendingLosses
-                          ) -> PendingLosses:
-    """Add the per-Gaussian flow loss (cl/gaussian_flow.cl, reference
-    reference/losses.py::gaussian_flow_loss_ref) to a step's pending losses: weight
-    cfg.lambda_flow_gaussian, normalised like the image flow loss (by the trusted flow pixels), so
-    the two weights compare.  ``out``: the step's RenderOutput (its Projected record, composited
-    depth and alpha).  Returns ``pending`` itself when the term is off or the frame has no flow."""
-    import pyopencl as cl
-    import pyopencl.array as cla
-
-    if not (cfg.use_flow and cfg.lambda_flow_gaussian > 0 and tgt.flow is not None and out.t_flow is not None):
-        return pending
-    p = out.proj
-    n = len(p)
-    N_C = int(p.features.shape[1]) if n else 0
-    H, W, CF = (int(s) for s in out.features.shape)
-    opts = [f"-DC={max(N_C, 1)}", f"-DCF={CF}", f"-DCH_DEPTH={int(channels['depth'])}",
-            f"-DCH_FLOW={int(channels['flow'])}"]
-    v = rt.empty((n, max(N_C, 1)), np.float32)
-    groups = max(1, -(-n // GFLOW_LOCAL))
-    partial = cla.zeros(rt.queue, (groups,), np.float32, allocator=rt.pool())
-    coef = cfg.lambda_flow_gaussian / tgt.n_flow
-    if n:
-        rt.launch_1d(rt.kernel(GFLOW_FILE, "gaussian_flow_loss", opts), n, GFLOW_LOCAL, np.int32(n),
-                     p.means2d.data, p.opac.data, p.radius.data, p.depth.data, p.features.data,
-                     out.features.data, out.alpha.data, tgt.flow.data, tgt.flow_w.data, np.int32(W), np.int32(H),
-                     np.float32(coef), np.float32(cfg.flow_huber_delta), np.float32(GAUSSIAN_FLOW_DEPTH_TOL),
-                     v.data, partial.data, cl.LocalMemory(4 * GFLOW_LOCAL))
-    image_finish = pending.finish
-
-    def finish(host: Dict[str, np.ndarray]) -> Tuple[float, Dict[str, float]]:
-        total, parts = image_finish(host)
-        parts["flow_gaussian"] = float(host["gaussian_flow"].astype(np.float64).sum() / tgt.n_flow)
-        total += cfg.lambda_flow_gaussian * parts["flow_gaussian"]
-        parts["total"] = float(total)
-        return float(total), parts
-
-    return PendingLosses(pending.v_features, {**pending.sums, "gaussian_flow": partial}, finish, v)

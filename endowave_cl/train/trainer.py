@@ -18,7 +18,6 @@ gradients' NaN / Inf flag), and the parameters only when densifying, checkpointi
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -49,8 +48,8 @@ def scene_extent(g: Gaussians) -> float:
 
 
 def late_factor(cfg, step: int, final: float) -> float:
-    """The late schedules' factor (in-between chance, flow losses' weight): 1 until
-    cfg.densify_until, then falling linearly to ``final`` at cfg.iterations."""
+    """The late schedule's factor of the in-between chance: 1 until cfg.densify_until, then
+    falling linearly to ``final`` at cfg.iterations."""
     if step <= cfg.densify_until or cfg.iterations <= cfg.densify_until:
         return 1.0
     u = min((step - cfg.densify_until) / float(cfg.iterations - cfg.densify_until), 1.0)
@@ -146,15 +145,6 @@ class Trainer:
         falling linearly to between_prob x between_anneal_final at the last step."""
         return self.cfg.between_prob * late_factor(self.cfg, step, self.cfg.between_anneal_final)
 
-    def loss_config(self, step: int):
-        """The config the step's losses read: self.cfg, with the flow losses' weights (lambda_flow,
-        lambda_flow_gaussian) scaled by the flow anneal (flow_anneal_final) after densify_until."""
-        c = self.cfg
-        f = late_factor(c, step, c.flow_anneal_final)
-        if f == 1.0:
-            return c
-        return dataclasses.replace(c, lambda_flow=c.lambda_flow * f, lambda_flow_gaussian=c.lambda_flow_gaussian * f)
-
     def _reset_stats(self):
         import pyopencl.array as cla
         n = len(self.params["means"])
@@ -204,9 +194,6 @@ class Trainer:
             f = sc.frames[k]
             pair = flows.get(k)
             valid = None if pair is None else pair.valid
-            if pair is not None and c.flow_photo_max > 0:
-                from ..data.flow import photometric_consistent
-                valid = valid * photometric_consistent(f.image, sc.frames[pair.dst].image, pair.flow, c.flow_photo_max)
             out[k] = FrameTargets(
                 prepare_targets(self.rt, f.image, f.mask, f.depth if c.use_depth else None,
                                 None if pair is None else pair.flow, valid),
@@ -266,7 +253,7 @@ class Trainer:
             out = render(self.rt, self.params, camera, t, t_next, select=self.select_live)   # forward
         pending = self.losses_enqueue(out, dev)                                          # losses
         grads = render_backward(self.rt, self.params, out, pending.v_features,           # adjoints
-                                v_gaussian_features=pending.v_gaussian_features, densify_stats=self.stats,
+                                densify_stats=self.stats,
                                 deterministic=True if self.cfg.deterministic else None,
                                 sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
         host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
@@ -281,14 +268,11 @@ class Trainer:
     def losses_enqueue(self, out, dev):
         """The step's losses against dev (device_losses.DeviceTargets; a FrameTargets is accepted
         too) enqueued on the device (train/device_losses.py): a PendingLosses with the gradient image
-        v_features [H, W, C], the per-Gaussian flow loss's gradient v_gaussian_features [N, C] and
-        the sums the host reads back."""
-        from .device_losses import gaussian_flow_enqueue, image_losses_enqueue
+        v_features [H, W, C] and the sums the host reads back."""
+        from .device_losses import image_losses_enqueue
         dev = getattr(dev, "dev", dev)
         channels = {"depth": DEPTH, "flow": FLOW.start}
-        cfg = self.loss_config(self.step)
-        pending = image_losses_enqueue(self.rt, out.features, dev, cfg, channels, self.wavelet_config)
-        return gaussian_flow_enqueue(self.rt, out, dev, cfg, channels, pending)
+        return image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config)
 
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
