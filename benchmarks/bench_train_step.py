@@ -95,10 +95,10 @@ def main(argv=None):
                       use_wavelet=not args.no_wavelet, eval_every=0, checkpoint_every=0,
                       **({} if args.adam_skip_culled is None else {"adam_skip_culled": args.adam_skip_culled}))
     if args.sh_degree is not None:
-        cfg.sh_degree = args.sh_degree
+        cfg = cfg.replace(sh_degree=args.sh_degree)
     if args.set:
-        from endowave_cl.train.config import apply_values
-        apply_values(cfg, dict(item.split("=", 1) for item in args.set), "--set", from_text=True)
+        from endowave_cl.train.config import with_values
+        cfg = with_values(cfg, dict(item.split("=", 1) for item in args.set), "--set", from_text=True)
     if args.no_select:
         from endowave_cl.ops.select import ENV_NO_SELECT
         os.environ[ENV_NO_SELECT] = "1"

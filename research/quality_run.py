@@ -54,10 +54,10 @@ def run_one(scene_path, downscale, seed, overrides, minutes, out_root):
     from endowave_cl.train.trainer import Trainer
     cfg = load_config(None, {**overrides, "seed": str(seed), "downscale": str(downscale)})
     if minutes:
-        cfg.minutes = minutes
+        cfg = cfg.replace(minutes=minutes)
     scene = load_scene(scene_path, downscale=cfg.downscale, use_depth=cfg.use_depth)
     if not scene.has_depth:
-        cfg.use_depth = False
+        cfg = cfg.replace(use_depth=False)
     rt = get_runtime()
     tr = Trainer(scene, cfg, Path(out_root) / f"seed{seed}", rt, log=lambda s: None, resume=False)
     fin = tr.train(progress=False)

@@ -21,7 +21,6 @@ are estimated here too); the model itself is the run's.  Prints the model's own 
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import sys
 from types import SimpleNamespace
@@ -46,7 +45,7 @@ def main(argv=None) -> int:
     from endowave_cl.run_io import load_run
     from endowave_cl.runtime import get_runtime
     from endowave_cl.train.between import bend_around, between_target
-    from endowave_cl.train.config import apply_values, between_flow_methods
+    from endowave_cl.train.config import between_flow_methods, with_values
     try:
         run = load_run(a.run)
         variants = {"run's config": run.cfg}
@@ -55,9 +54,8 @@ def main(argv=None) -> int:
             values = dict(item.split("=", 1) for item in body.split(",") if item.strip())
             if not name or not values or any(k.strip() not in KEYS for k in values):
                 raise EndowaveError(f"--variant {v!r}: expected NAME:KEY=VALUE,... with keys from {', '.join(KEYS)}")
-            cfg = copy.deepcopy(run.cfg)
-            apply_values(cfg, {k.strip(): x.strip() for k, x in values.items()}, f"--variant {name}", from_text=True)
-            variants[name] = cfg
+            variants[name] = with_values(run.cfg, {k.strip(): x.strip() for k, x in values.items()},
+                                         f"--variant {name}", from_text=True)
     except (EndowaveError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -12,8 +12,11 @@ from endowave_cl.train.config import TrainConfig
 def test_replan_scales_the_schedule_shape():
     cfg = TrainConfig(iterations=3000, densify_from=500, densify_until=2000, opacity_reset_every=3000)
     plan = BudgetPlan.start(cfg, minutes=1.0, reserve=0.0)
-    total = plan.replan(cfg, step=0, seconds_per_step=0.1)     # 60 s at 0.1 s: 600 steps, 80% while densifying
+    planned = plan.replan(cfg, step=0, seconds_per_step=0.1)   # 60 s at 0.1 s: 600 steps, 80% while densifying
+    total = plan.planned
     assert total == pytest.approx(480, abs=2)
+    assert cfg.iterations == 3000                                # a new config; the given one is as it was
+    cfg = planned
     assert cfg.iterations == total
     r = total / 3000
     assert cfg.densify_from == round(500 * r) and cfg.densify_until == round(2000 * r)
@@ -26,7 +29,8 @@ def test_replan_keeps_a_scaled_key_that_is_off():
     for refresh in (0, 500):
         cfg = TrainConfig(iterations=3000, between_motion_refresh=refresh)
         plan = BudgetPlan.start(cfg, minutes=1.0, reserve=0.0)
-        total = plan.replan(cfg, step=0, seconds_per_step=0.1)
+        cfg = plan.replan(cfg, step=0, seconds_per_step=0.1)
+        total = plan.planned
         assert cfg.between_motion_refresh == (round(refresh * total / 3000) if refresh else 0)
 
 

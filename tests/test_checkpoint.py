@@ -19,9 +19,9 @@ def test_config_defaults_follow_design():
     assert densify_threshold_for(160, 128) == densify_threshold_for(320, 256) == 2e-4
     assert densify_threshold_for(640, 512) == pytest.approx(1e-4, rel=1e-12)
     assert densify_threshold_for(1280, 1024) == pytest.approx(5e-5, rel=1e-12)
-    c.resolve_density(640, 512)
+    c = c.resolve_density(640, 512)
     assert c.densify_grad_threshold == pytest.approx(1e-4, rel=1e-12)
-    c.resolve_density(320, 256)                    # resolved once: a given threshold stays
+    c = c.resolve_density(320, 256)                # resolved once: a given threshold stays
     assert c.densify_grad_threshold == pytest.approx(1e-4, rel=1e-12)
     # the depth loss's weight is a tenth of DESIGN.md's, in scene units (finding 18)
     assert (c.lambda_rgb, c.lambda_dssim, c.lambda_depth) == (1.0, 0.2, 0.1)

@@ -281,15 +281,12 @@ def test_default_cap_counts_the_gaussians_alive_at_a_time(scene, rt, tmp_path):
     from endowave_cl.train.trainer import Trainer
     W, H = scene.width, scene.height
     floor = int(MAX_GAUSSIANS_PER_PIXEL * W * H)
-    cfg = TrainConfig()
-    cfg.resolve_density(W, H)
+    cfg = TrainConfig().resolve_density(W, H)
     assert cfg.max_gaussians == floor
-    cfg.resolve_cap_for_lifetimes(W, H, coverage=1.0)        # alive all along: the floor binds
-    assert cfg.max_gaussians == floor
-    cfg.resolve_cap_for_lifetimes(W, H, coverage=0.05)
-    assert cfg.max_gaussians == int(ALIVE_PER_PIXEL * W * H / 0.05) > floor
-    cfg.resolve_cap_for_lifetimes(W, H, coverage=1e-9)       # bounded for memory
-    assert cfg.max_gaussians == int(MAX_GAUSSIANS_PER_PIXEL_LIMIT * W * H)
+    assert cfg.resolve_cap_for_lifetimes(W, H, coverage=1.0).max_gaussians == floor   # alive all along: the floor
+    assert cfg.resolve_cap_for_lifetimes(W, H, coverage=0.05).max_gaussians == int(ALIVE_PER_PIXEL * W * H / 0.05) > floor
+    bounded = cfg.resolve_cap_for_lifetimes(W, H, coverage=1e-9)       # bounded for memory
+    assert bounded.max_gaussians == int(MAX_GAUSSIANS_PER_PIXEL_LIMIT * W * H)
 
     long_lived = _trainer(scene, rt, tmp_path / "a", init_time_scale=0.5)
     assert long_lived.cfg.max_gaussians == floor
@@ -310,21 +307,18 @@ def test_default_iterations_visit_every_training_frame_alike(scene, rt, tmp_path
     """iterations = 0: STEPS_PER_TRAINING_FRAME per training frame, at least BASE_ITERATIONS, with
     the schedule keys stretched by the same factor; a given step count keeps the keys as given."""
     from endowave_cl.train.config import BASE_ITERATIONS, SCALED_FIELDS, STEPS_PER_TRAINING_FRAME
-    short = TrainConfig()
-    short.resolve_iterations(BASE_ITERATIONS // STEPS_PER_TRAINING_FRAME)   # a short sequence: the floor
+    short = TrainConfig().resolve_iterations(BASE_ITERATIONS // STEPS_PER_TRAINING_FRAME)   # a short sequence: the floor
     assert short.iterations == BASE_ITERATIONS
     assert all(getattr(short, f) == getattr(TrainConfig(), f) for f in SCALED_FIELDS)
     n = 3 * BASE_ITERATIONS // STEPS_PER_TRAINING_FRAME                     # three times as many frames
-    long = TrainConfig()
-    long.resolve_iterations(n)
+    long = TrainConfig().resolve_iterations(n)
     assert long.iterations == STEPS_PER_TRAINING_FRAME * n > BASE_ITERATIONS
     r = long.iterations / BASE_ITERATIONS
     for f in ("densify_from", "densify_until", "opacity_reset_every"):
         assert getattr(long, f) == round(getattr(TrainConfig(), f) * r), f
     assert long.densify_until < long.iterations and long.opacity_reset_every >= long.densify_until  # no reset
     assert long.lr_position_steps == 0                                      # still "over all iterations"
-    given = TrainConfig(iterations=123)
-    given.resolve_iterations(n)
+    given = TrainConfig(iterations=123).resolve_iterations(n)
     assert given.iterations == 123 and given.densify_until == TrainConfig().densify_until
 
     tr = _trainer(scene, rt, tmp_path / "a", iterations=0)
@@ -363,7 +357,7 @@ def _fixed(key, default):
 # ------------------------------------------------------------------ learning rates
 def _lrs(cfg, step=0, extent=2.0):
     from endowave_cl.train.trainer import Trainer
-    cfg.resolve_iterations(55)   # as the trainer does before its first step (55 training frames)
+    cfg = cfg.resolve_iterations(55)   # as the trainer does before its first step (55 training frames)
     return Trainer.group_lrs(SimpleNamespace(cfg=cfg, extent=extent), step)
 
 
@@ -1068,3 +1062,17 @@ def test_removed_keys_are_refused_as_settings_and_ignored_in_saved_runs(scene, t
         else:
             assert "between_by_time = True ignored: key 'between_by_time' was removed" in notes
             assert "flow_photo_max = 0.03 ignored" in notes and "flow_anneal_final" not in notes
+
+
+def test_config_is_frozen_and_resolution_gives_a_new_one(scene, rt, tmp_path):
+    """A TrainConfig cannot be changed in place; the trainer's resolved config is a new one and the
+    caller's is as it was (iterations, density and SH degree still 0 / -1)."""
+    import dataclasses
+    cfg = tiny_config(**{**QUICK, "iterations": 0, "max_gaussians": 0, "sh_degree": -1})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.iterations = 5
+    before = cfg.to_dict()
+    from endowave_cl.train.trainer import Trainer
+    tr = Trainer(scene, cfg, tmp_path / "run", rt, log=lambda s: None, resume=False)
+    assert cfg.to_dict() == before
+    assert tr.cfg is not cfg and tr.cfg.iterations > 0 and tr.cfg.max_gaussians > 0 and tr.cfg.sh_degree >= 0

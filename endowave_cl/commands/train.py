@@ -79,30 +79,32 @@ def build_config(args):
         k, v = item.split("=", 1)
         overrides[k.strip()] = v.strip()
     cfg = load_config(args.config, overrides, getattr(args, "recipe", None))
+    changes = {}    # what the options say, over the file and --set (the config is frozen: one replace)
     if args.iterations is not None:
         if args.iterations < 1:
             raise EndowaveError(f"--iterations must be at least 1, got {args.iterations}")
-        cfg.iterations = args.iterations
+        changes["iterations"] = args.iterations
     elif args.demo and not args.config and "iterations" not in overrides:
-        cfg.iterations = DEMO_ITERATIONS
+        changes["iterations"] = DEMO_ITERATIONS
     if args.demo and not args.config:
         if "init_points" not in overrides:
-            cfg.init_points = DEMO_INIT_POINTS
+            changes["init_points"] = DEMO_INIT_POINTS
         if "max_gaussians" not in overrides:
-            cfg.max_gaussians = DEMO_MAX_GAUSSIANS
+            changes["max_gaussians"] = DEMO_MAX_GAUSSIANS
     if args.downscale is not None:
         check_downscale_arg(args.downscale)
-        cfg.downscale = args.downscale
+        changes["downscale"] = args.downscale
     if getattr(args, "minutes", None) is not None:
         if not args.minutes > 0:
             raise EndowaveError(f"--minutes must be > 0, got {args.minutes}")
-        cfg.minutes = args.minutes
+        changes["minutes"] = args.minutes
     if getattr(args, "validation", False):
-        cfg.split = "validation"
-    cfg.use_flow &= not args.no_flow
-    cfg.use_wavelet &= not args.no_wavelet
-    cfg.use_depth &= not args.no_depth
+        changes["split"] = "validation"
+    changes["use_flow"] = cfg.use_flow and not args.no_flow
+    changes["use_wavelet"] = cfg.use_wavelet and not args.no_wavelet
+    changes["use_depth"] = cfg.use_depth and not args.no_depth
     from ..train.config import validate_config
+    cfg = cfg.replace(**changes)
     validate_config(cfg, "the command line")
     return cfg
 
@@ -211,7 +213,7 @@ def run(args) -> int:
     from ..evaluation import flow_references
     flow_references(scene)   # gt_flow/ read and checked now, not after training (issue 57); kept for the end
     if not scene.has_depth:
-        cfg.use_depth = False
+        cfg = cfg.replace(use_depth=False)
     rt = get_runtime(getattr(args, "device", None))
     print(f"device: {rt.describe()}")
     rt.build_notice = build_notice(rt)
@@ -219,6 +221,7 @@ def run(args) -> int:
                                          ("wavelet", cfg.use_wavelet)) if on]
     auto_sh = cfg.sh_degree < 0          # resolved by the trainer from the cameras (train/config.py)
     trainer = Trainer(scene, cfg, out, rt, resume=not args.restart, progress=not args.quiet)
+    cfg = trainer.cfg                    # resolved (steps, density, SH degree) for this scene
     if cfg.minutes > 0:
         plan = f"a {cfg.minutes:g}-minute budget"
     elif trainer.auto_iterations:

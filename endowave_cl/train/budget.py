@@ -24,7 +24,7 @@ GROWTH_MARGIN = 0.8
 
 @dataclass
 class BudgetPlan:
-    """A time-budgeted schedule; ``replan`` rewrites the trainer's config in place."""
+    """A time-budgeted schedule; ``replan`` gives the trainer's config with the planned schedule."""
     seconds: float                 # whole budget of the training loop
     reserve: float                 # kept for the final checkpoint and evaluation
     base: Dict[str, int]           # the configured iterations and SCALED_FIELDS
@@ -46,14 +46,14 @@ class BudgetPlan:
     def out_of_time(self) -> bool:
         return time.perf_counter() >= self.deadline
 
-    def replan(self, cfg, step: int, seconds_per_step: float) -> int:
-        """Set cfg.iterations and the scaled fields for the time left at ``seconds_per_step``."""
+    def replan(self, cfg, step: int, seconds_per_step: float):
+        """cfg (a TrainConfig) with iterations and the scaled fields planned for the time left at
+        ``seconds_per_step``; ``planned`` holds the new iterations."""
         left = max(0.0, self.deadline - time.perf_counter())
         margin = GROWTH_MARGIN if step < cfg.densify_until else 1.0
         total = max(step + 1, step + int(margin * left / max(seconds_per_step, 1e-6)))
         r = total / self.base["iterations"]
-        for f in SCALED_FIELDS:   # a key at 0 (off) stays 0
-            setattr(cfg, f, max(1, int(round(self.base[f] * r))) if self.base[f] > 0 else 0)
-        cfg.iterations = total
+        scaled = {f: max(1, int(round(self.base[f] * r))) if self.base[f] > 0 else 0   # a key at 0 (off) stays 0
+                  for f in SCALED_FIELDS}
         self.planned = total
-        return total
+        return cfg.replace(iterations=total, **scaled)

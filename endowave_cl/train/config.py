@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional
 
 from ..errors import EndowaveError
@@ -78,8 +78,10 @@ SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_pos
                  "between_motion_refresh")
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
+    """Every training setting; frozen: the resolve_* steps and the other changes return a new one
+    (``replace``), so a config handed to a trainer, a plan or a loss is never changed under it."""
     recipe: str = "default"         # the named set of values the others start from (RECIPES):
                                     # "default", or "paper" (EndoWave as published)
     # -- schedule -------------------------------------------------------------------------------
@@ -262,47 +264,51 @@ class TrainConfig:
     wavelet_weight_hl: float = _WAVELET.weights[2]
     wavelet_weight_hh: float = _WAVELET.weights[3]
 
-    def resolve_iterations(self, n_train: int) -> None:
-        """Replace iterations = 0 by STEPS_PER_TRAINING_FRAME x n_train steps, at least
-        BASE_ITERATIONS, and stretch the schedule keys (SCALED_FIELDS, given for BASE_ITERATIONS
-        steps) by the same factor.  An iterations > 0 is kept, and the keys with it."""
+    def replace(self, **changes) -> "TrainConfig":
+        """This config with ``changes`` (key: value, not checked; with_values checks them)."""
+        return replace(self, **changes)
+
+    def resolve_iterations(self, n_train: int) -> "TrainConfig":
+        """This config with iterations = 0 replaced by STEPS_PER_TRAINING_FRAME x n_train steps, at
+        least BASE_ITERATIONS, and the schedule keys (SCALED_FIELDS, given for BASE_ITERATIONS
+        steps) stretched by the same factor.  An iterations > 0 is kept, and the keys with it."""
         if self.iterations > 0:
-            return
+            return self
         total = max(BASE_ITERATIONS, STEPS_PER_TRAINING_FRAME * int(n_train))
         r = total / BASE_ITERATIONS
-        for f in SCALED_FIELDS:
-            if getattr(self, f) > 0:          # lr_position_steps = 0 means "all of them" already
-                setattr(self, f, max(1, int(round(getattr(self, f) * r))))
-        self.iterations = total
+        # lr_position_steps = 0 means "all of them" already: a key at 0 stays 0
+        scaled = {f: max(1, int(round(getattr(self, f) * r))) for f in SCALED_FIELDS if getattr(self, f) > 0}
+        return self.replace(iterations=total, **scaled)
 
-    def resolve_density(self, width: int, height: int) -> None:
-        """Replace init_points = 0 and max_gaussians = 0 by their per-pixel defaults for width x
-        height frames, and densify_grad_threshold = 0 by densify_threshold_for(width, height) (the
-        run's config.json then records the numbers used)."""
-        if self.max_gaussians <= 0:
-            self.max_gaussians = max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
-        if self.init_points <= 0:
-            self.init_points = max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), self.max_gaussians // 2))
-        if self.densify_grad_threshold <= 0:
-            self.densify_grad_threshold = densify_threshold_for(width, height)
+    def resolve_density(self, width: int, height: int) -> "TrainConfig":
+        """This config with init_points = 0 and max_gaussians = 0 replaced by their per-pixel
+        defaults for width x height frames, and densify_grad_threshold = 0 by
+        densify_threshold_for(width, height) (the run's config.json then records the numbers used)."""
+        cap = self.max_gaussians if self.max_gaussians > 0 else max(1, int(MAX_GAUSSIANS_PER_PIXEL * width * height))
+        points = (self.init_points if self.init_points > 0
+                  else max(1, min(int(INIT_POINTS_PER_PIXEL * width * height), cap // 2)))
+        threshold = (self.densify_grad_threshold if self.densify_grad_threshold > 0
+                     else densify_threshold_for(width, height))
+        return self.replace(max_gaussians=cap, init_points=points, densify_grad_threshold=threshold)
 
-    def resolve_cap_for_lifetimes(self, width: int, height: int, coverage: float) -> None:
-        """Raise the per-pixel default cap (max_gaussians = 0 given, resolve_density applied) to
-        ALIVE_PER_PIXEL Gaussians per pixel alive at a time, for initial Gaussians that are each
-        alive for the fraction ``coverage`` (their mean) of the sequence."""
+    def resolve_cap_for_lifetimes(self, width: int, height: int, coverage: float) -> "TrainConfig":
+        """This config with the per-pixel default cap (max_gaussians = 0 given, resolve_density
+        applied) raised to ALIVE_PER_PIXEL Gaussians per pixel alive at a time, for initial
+        Gaussians that are each alive for the fraction ``coverage`` (their mean) of the sequence."""
         alive_cap = ALIVE_PER_PIXEL * width * height / max(float(coverage), 1e-6)
         alive_cap = int(min(alive_cap, MAX_GAUSSIANS_PER_PIXEL_LIMIT * width * height))
-        self.max_gaussians = max(self.max_gaussians, alive_cap)
+        return self.replace(max_gaussians=max(self.max_gaussians, alive_cap))
 
-    def resolve_sh_degree(self, one_viewpoint: bool) -> None:
+    def resolve_sh_degree(self, one_viewpoint: bool) -> "TrainConfig":
         """Replace sh_degree = -1 by SH_DEGREE_ONE_VIEWPOINT when every training frame is seen from
         one camera centre, else by SH_DEGREE_MOVING.  From one centre a Gaussian is seen along a
         direction that changes only as far as the Gaussian itself moves, a few degrees: degree 1 (a
         colour that changes linearly with that direction) is all the data can constrain, and
         degrees 2 and 3 would add 108 of the 144 colour coefficients per Gaussian, and the time to
         project and update them, without changing the test frames (research/QUALITY.md finding 12)."""
-        if self.sh_degree < 0:
-            self.sh_degree = SH_DEGREE_ONE_VIEWPOINT if one_viewpoint else SH_DEGREE_MOVING
+        if self.sh_degree >= 0:
+            return self
+        return self.replace(sh_degree=SH_DEGREE_ONE_VIEWPOINT if one_viewpoint else SH_DEGREE_MOVING)
 
     def wavelet_config(self):
         """The wavelet_* keys as the WaveletConfig the device loss takes."""
@@ -315,9 +321,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "config dictionary") -> "TrainConfig":
-        cfg = cls()
-        apply_values(cfg, d, source)
-        return cfg
+        return with_values(cls(), d, source)
 
 
 _FIELDS = {f.name: f for f in fields(TrainConfig)}
@@ -403,14 +407,20 @@ def drop_removed(values: Mapping[str, Any], source: str, note=None) -> Dict[str,
     return out
 
 
-def apply_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_text: bool = False) -> None:
+def with_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_text: bool = False) -> TrainConfig:
+    """cfg with ``values`` ({key: value}; from_text: values may be the text of one, as --set gives
+    them), each key checked (known, its type, its range); one-line EndowaveError naming ``source``
+    and the key otherwise."""
+    changes = {}
     for key, value in values.items():
         if key in REMOVED:
             raise EndowaveError(f"{source}: {removed_key_text(key)}; an older commit has it")
         if key not in _FIELDS:
             raise EndowaveError(f"{source}: unknown key '{key}'{did_you_mean(key)}")
-        setattr(cfg, key, _coerce(key, value, source, from_text))
+        changes[key] = _coerce(key, value, source, from_text)
+    cfg = cfg.replace(**changes)
     validate_config(cfg, source)
+    return cfg
 
 
 # The range every numeric key must lie in: (low, high, low inclusive, high inclusive); None = open.
@@ -557,9 +567,7 @@ def recipe_config(name: str, source: str = "--recipe") -> TrainConfig:
     """The TrainConfig a recipe (RECIPES) starts from."""
     if name not in RECIPES:
         raise EndowaveError(f"{source}: unknown recipe {name!r} (choose from {', '.join(RECIPES)})")
-    cfg = TrainConfig()
-    apply_values(cfg, {**RECIPES[name], "recipe": name}, f"recipe {name!r}")
-    return cfg
+    return with_values(TrainConfig(), {**RECIPES[name], "recipe": name}, f"recipe {name!r}")
 
 
 def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = None,
@@ -581,9 +589,9 @@ def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = No
     data.pop("recipe", None)
     overrides.pop("recipe", None)
     if data:
-        apply_values(cfg, data, str(path))
+        cfg = with_values(cfg, data, str(path))
     if overrides:
-        apply_values(cfg, overrides, "override", from_text=True)
+        cfg = with_values(cfg, overrides, "override", from_text=True)
     return cfg
 
 

@@ -71,9 +71,10 @@ class Trainer:
         self._build0 = getattr(rt, "build_seconds", 0.0)   # kernel builds are reported apart (runtime.py)
         self._auto_cap = cfg.max_gaussians <= 0           # raised for short lives once the model exists
         self.auto_iterations = cfg.iterations <= 0        # visits per training frame (config.py)
-        cfg.resolve_iterations(len(scene.train_indices))
-        cfg.resolve_density(scene.width, scene.height)   # per-pixel defaults of init_points, max_gaussians
-        cfg.resolve_sh_degree(scene.one_viewpoint())     # sh_degree -1: 1 for a fixed camera, else 3
+        # the resolved config (TrainConfig is frozen: each step gives a new one; the caller's is unchanged)
+        self.cfg = cfg = (cfg.resolve_iterations(len(scene.train_indices))
+                          .resolve_density(scene.width, scene.height)   # per-pixel init_points, max_gaussians
+                          .resolve_sh_degree(scene.one_viewpoint()))    # sh_degree -1: 1 for a fixed camera, else 3
         self.run_dir = Path(run_dir)
         # creates and locks the run folder; config.json is written by run.start once the model is ready
         self._run = RunSession(self.run_dir, log, resume)
@@ -97,9 +98,9 @@ class Trainer:
             scene.set_world_scale(float(ck["extra"].get("world_scale", 1.0)))
             self.step = int(ck["step"])
             self.extent = float(ck["extra"].get("extent", scene_extent(g)))
-            self.cfg.sh_degree = g.sh_degree     # the model's layout, whatever the config resolved to
+            self.cfg = self.cfg.replace(sh_degree=g.sh_degree)   # the model's layout, whatever was resolved
             if self._auto_cap:                   # the cap the run started with
-                self.cfg.max_gaussians = int(ck["config"].get("max_gaussians", self.cfg.max_gaussians))
+                self.cfg = self.cfg.replace(max_gaussians=int(ck["config"].get("max_gaussians", self.cfg.max_gaussians)))
             self.log(f"resuming from {ckpt_path} at step {self.step} ({len(g)} Gaussians)")
         else:
             from .init import init_gaussians
@@ -112,8 +113,8 @@ class Trainer:
                 from ..gaussians import covariance_4d
                 from .motion import temporal_coverage
                 sigma_t = np.sqrt(np.maximum(covariance_4d(g)[:, 3, 3], 0.0))
-                cfg.resolve_cap_for_lifetimes(scene.width, scene.height,
-                                              float(temporal_coverage(g.means[:, 3], sigma_t).mean()))
+                self.cfg = self.cfg.resolve_cap_for_lifetimes(scene.width, scene.height,
+                                                              float(temporal_coverage(g.means[:, 3], sigma_t).mean()))
             ck = None
         self.params = upload(rt, g)
         self.adam = DeviceAdam(rt, self.params, self.group_lrs(self.step))
@@ -122,7 +123,7 @@ class Trainer:
         self._reset_stats()
         self.targets = self._prepare_targets()
         from .between import BetweenSampler
-        self._between = BetweenSampler.from_config(rt, scene, cfg, self.flows if cfg.between_prob > 0 else {},
+        self._between = BetweenSampler.from_config(rt, scene, self.cfg, self.flows if cfg.between_prob > 0 else {},
                                                    self._load_between_flows())
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
@@ -360,7 +361,8 @@ class Trainer:
             return False
         rate = float(np.median(timed[-RATE_WINDOW:]))
         old = budget.planned
-        total = budget.replan(self.cfg, self.step, rate)
+        self.cfg = budget.replan(self.cfg, self.step, rate)
+        total = budget.planned
         if first:
             c = self.cfg
             bar.write(f"time budget {c.minutes:g} min: planned {total} steps at {rate * 1e3:.0f} ms/step "
@@ -433,6 +435,7 @@ class Trainer:
                 self.reset_opacity()
                 self._run.guard.reset_reference(s)   # the PSNR dips on purpose
             if budget is not None and self._replan(budget, step_times, bar):
+                c = self.cfg                             # the re-planned schedule
                 bar.total = c.iterations
             if (s % c.log_every == 0 or s == c.iterations) and ema is not None:
                 bar.set_postfix(loss=f"{ema['total']:.4f}", psnr=f"{ema['psnr']:.2f}", N=len(self.params["means"]))
