@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import fields
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,7 +19,7 @@ import pytest
 from conftest import tiny_config
 from endowave_cl.errors import EndowaveError
 from endowave_cl.gaussians import Gaussians
-from endowave_cl.train.config import TrainConfig, load_config
+from endowave_cl.train.config import KEYS, TrainConfig, load_config
 from endowave_cl.train.densify import densify_and_prune, logit
 
 QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0,
@@ -988,7 +987,7 @@ CHECKS = {
 
 
 def test_every_key_has_a_check():
-    assert set(CHECKS) == {f.name for f in fields(TrainConfig)}
+    assert set(CHECKS) == set(KEYS)
 
 
 @pytest.mark.parametrize("key", sorted(CHECKS))
@@ -1038,7 +1037,7 @@ def test_removed_keys_are_refused_as_settings_and_ignored_in_saved_runs(scene, t
     from endowave_cl.checkpoint import checkpoint_path, save_checkpoint
     from endowave_cl.run_io import load_run
     from endowave_cl.train.config import REMOVED
-    assert not set(REMOVED) & {f.name for f in fields(TrainConfig)}
+    assert not set(REMOVED) & set(KEYS)
     with pytest.raises(EndowaveError, match=r"^override: key 'between_two_flow' was removed .*finding 9"):
         load_config(None, {"between_two_flow": "true"})
     toml = tmp_path / "old.toml"
@@ -1076,3 +1075,25 @@ def test_config_is_frozen_and_resolution_gives_a_new_one(scene, rt, tmp_path):
     tr = Trainer(scene, cfg, tmp_path / "run", rt, log=lambda s: None, resume=False)
     assert cfg.to_dict() == before
     assert tr.cfg is not cfg and tr.cfg.iterations > 0 and tr.cfg.max_gaussians > 0 and tr.cfg.sh_degree >= 0
+
+
+def test_sections_and_flat_keys_are_one_setting():
+    """Each flat key is one section's field (FLAT, from SECTIONS): reading, building and replacing
+    by either name reach the same value; to_dict gives the flat keys, and from_dict takes them back."""
+    import pickle
+    from endowave_cl.train.config import FLAT, SECTIONS
+    cfg = TrainConfig(between_prob=0.3, lr_time=1e-3, wavelet_q=3, flow_method="dis")
+    assert (cfg.between.prob, cfg.optim.lr_time, cfg.wavelet.q, cfg.flow.method) == (0.3, 1e-3, 3, "dis")
+    assert (cfg.between_prob, cfg.lr_time, cfg.wavelet_q, cfg.flow_method) == (0.3, 1e-3, 3, "dis")
+    assert cfg.replace(between=cfg.between.__class__(prob=0.1)).between_prob == 0.1
+    assert cfg.replace(between_prob=0.2).between.prob == 0.2 and cfg.between.prob == 0.3
+    assert sorted(FLAT) == sorted(k for k in KEYS if k != "recipe")
+    assert {name for name, _ in FLAT.values()} == set(SECTIONS)
+    for key, (name, field_name) in FLAT.items():
+        assert getattr(getattr(TrainConfig(), name), field_name) == getattr(TrainConfig(), key)
+    assert list(cfg.to_dict()) == list(KEYS)
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg == pickle.loads(pickle.dumps(cfg))
+    with pytest.raises(TypeError, match="unknown key 'between_probability'"):
+        TrainConfig(between_probability=0.3)
+    with pytest.raises(AttributeError):
+        cfg.between_probability

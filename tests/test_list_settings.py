@@ -2,27 +2,26 @@
 one-line meaning; a mistyped key in --set or a TOML file gets a "did you mean" (issue 59)."""
 from __future__ import annotations
 
-from dataclasses import fields
-
 import pytest
 
 from endowave_cl.cli import main as cli_main
 from endowave_cl.errors import EndowaveError
-from endowave_cl.train.config import RANGES, TrainConfig, load_config, settings_table
+from endowave_cl.train.config import FLAT, KEYS, RANGES, SECTIONS, load_config, settings_table
 
 
 def test_every_key_is_listed_with_a_meaning():
     rows = settings_table()
-    assert [r[0] for r in rows] == [f.name for f in fields(TrainConfig)]
-    for key, default, values, meaning in rows:
+    assert [r[1] for r in rows] == list(KEYS) and KEYS[0] == "recipe" and len(KEYS) == len(set(KEYS))
+    for section, key, default, values, meaning in rows:
         assert meaning and "\n" not in meaning and len(meaning) <= 110, key
+        assert section == (FLAT[key][0] if key != "recipe" else "")
         if key in RANGES:
             assert values, key
-    by_key = {r[0]: r for r in rows}
-    assert by_key["between_prob"][1:3] == ("0.5", "in [0, 1]")
-    assert by_key["between_path"][2] == "linear | quadratic"
-    assert by_key["use_flow"][2] == "true | false"
-    assert by_key["init_time_scale"][3].startswith("longest initial temporal std")
+    by_key = {r[1]: r[2:] for r in rows}
+    assert by_key["between_prob"][:2] == ("0.5", "in [0, 1]")
+    assert by_key["between_path"][1] == "linear | quadratic"
+    assert by_key["use_flow"][1] == "true | false"
+    assert by_key["init_time_scale"][2].startswith("longest initial temporal std")
 
 
 def test_list_settings_needs_no_other_argument(capsys):
@@ -30,8 +29,16 @@ def test_list_settings_needs_no_other_argument(capsys):
         cli_main(["train", "--list-settings"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    assert all(f.name in out for f in fields(TrainConfig))
+    assert all(key in out for key in KEYS)
     assert "range / values" in out and "--recipe paper" in out
+    # grouped by section, in SECTIONS' order, each key under its own section's heading
+    heads = [out.index(f"\n[{name}]") for name in SECTIONS]
+    assert heads == sorted(heads)
+    for key, (name, _) in FLAT.items():
+        at = out.index(f"\n{key} ")
+        assert heads[list(SECTIONS).index(name)] < at, key
+        later = [h for h in heads if h > heads[list(SECTIONS).index(name)]]
+        assert not later or at < later[0], key
 
 
 def test_a_mistyped_key_gets_the_nearest(tmp_path):

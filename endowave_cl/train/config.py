@@ -1,14 +1,17 @@
-"""Every training default in one dataclass, and loading it from a TOML file.
+"""Every training default, in sections by what reads them, and loading them from a TOML file.
 
-Defaults follow DESIGN.md (3DGS / 4DGS optimiser and density-control values); the ones the paper
-leaves open are chosen here and commented.  A TOML file holds flat ``key = value`` pairs with the
-field names below (an optional ``[train]`` table is accepted too).
+TrainConfig is made of frozen sections (SECTIONS: schedule, data, init, optim, densify, losses,
+wavelet, flow, between), each documented with the code that reads it.  Every setting also has one
+flat key (FLAT, made from SECTIONS: between_prob is between.prob): --set KEY=VALUE, a TOML file's
+``key = value`` pairs (an optional ``[train]`` table is accepted too) and a run's config.json use
+the flat keys.  Defaults follow DESIGN.md (3DGS / 4DGS optimiser and density-control values); the
+ones the paper leaves open are chosen here and commented.
 """
 from __future__ import annotations
 
 import math
 import sys
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional
 
 from ..errors import EndowaveError
@@ -79,12 +82,8 @@ SCALED_FIELDS = ("densify_from", "densify_until", "opacity_reset_every", "lr_pos
 
 
 @dataclass(frozen=True)
-class TrainConfig:
-    """Every training setting; frozen: the resolve_* steps and the other changes return a new one
-    (``replace``), so a config handed to a trainer, a plan or a loss is never changed under it."""
-    recipe: str = "default"         # the named set of values the others start from (RECIPES):
-                                    # "default", or "paper" (EndoWave as published)
-    # -- schedule -------------------------------------------------------------------------------
+class ScheduleSettings:
+    """How long training runs and what it writes on the way (train/trainer.py's loop, train/budget.py)."""
     iterations: int = 0             # 0: STEPS_PER_TRAINING_FRAME per training frame, at least
                                     # BASE_ITERATIONS (6000: about 10-15 minutes for the 63 pulling
                                     # frames at 320x256 on 2 CPU cores, research/QUALITY.md), with the
@@ -98,12 +97,21 @@ class TrainConfig:
     log_every: int = 50
     eval_every: int = 500
     checkpoint_every: int = 1000
-    # -- data -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DataSettings:
+    """Which frames are read and how (data/scene.py: load_scene, apply_split)."""
     downscale: float = 1.0          # image downscale factor (2 = half size)
     split: str = "test"             # "test": train on every non-test frame, score the test frames
                                     # ((i - 1) % 8 == 0); "validation": also hold out the validation
                                     # frames ((i - 5) % 8 == 0) and score those, for choosing settings
                                     # without reading a test frame (data/scene.py apply_split)
+
+
+@dataclass(frozen=True)
+class InitSettings:
+    """The initial Gaussians (train/init.py init_gaussians, train/motion.py)."""
     init_points: int = 0            # Gaussians created by init_gaussians; 0: INIT_POINTS_PER_PIXEL per
                                     # pixel of one frame, at most half of max_gaussians
     init_time_scale: float = 0.2    # longest initial temporal std (normalised time; 0: 2 training-
@@ -113,93 +121,16 @@ class TrainConfig:
                                     # (train/motion.py linear_lifetime; research/QUALITY.md)
     init_velocity: bool = True      # initial Gaussians move with the pseudo ground-truth flow under
                                     # their pixel (train/motion.py) instead of starting still
-    between_prob: float = 0.5       # fraction of steps spent at a random time between two training
-                                    # frames, supervised by the frame the pair's flow predicts there
-                                    # (train/between.py); 0: training frames only (research/QUALITY.md)
-    between_anneal_final: float = 0.5  # between_prob is multiplied by a factor that falls linearly
-                                    # from 1 at densify_until to this at the last step (0: the run
-                                    # ends on the training frames alone; 1: constant; 0.5: what
-                                    # suits the real and the synthetic scenes, QUALITY.md finding 11)
-    between_s: str = "uniform"      # where in the pair an in-between step's time falls
-                                    # (train/between.py S_DISTRIBUTIONS): "uniform" over it, or
-                                    # "triangular", twice as often at its middle and falling to
-                                    # none at its two frames; it moves quality towards the
-                                    # middle, not up (research/QUALITY.md finding 30)
-    between_path: str = "quadratic"  # how the in-between target moves a pixel between the pair's
-                                    # frames (train/between.py PATHS): "quadratic", along the
-                                    # parabola through its positions in the pair's frames and in
-                                    # the training frame beyond the pair on each side (tissue that
-                                    # speeds up or slows down); "linear", at constant velocity
-                                    # along the pair's flows (research/QUALITY.md finding 31)
-    between_levels: int = 0         # 0: an in-between step's fraction s is drawn from a continuous
-                                    # distribution and its target built on the host at every step;
-                                    # K >= 2: s is moved onto the grid j / K (j = 1 .. K - 1) and each
-                                    # pair's flow prediction at a grid point is built once and kept
-                                    # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
-                                    # that later in-between steps cost little more than plain ones
-    between_sampler: str = "cubic"  # how the in-between target samples the two frames between
-                                    # pixels (warp.py SAMPLERS): "cubic" (bicubic) or "linear"
-                                    # (bilinear, which at half-pixel offsets averages two pixels
-                                    # and teaches a blurred frame; research/QUALITY.md finding 10)
-    between_flows: str = "dis,farneback"  # further flow estimators (comma-separated,
-                                    # data/flow.py METHODS) whose interpolations are fused with
-                                    # flow_method's in the in-between target, per pixel by how well
-                                    # each one's two warps agree (train/between.py
-                                    # fused_interpolation; research/QUALITY.md finding 20); "":
-                                    # flow_method's alone
-    between_fuse: str = "agree"     # how between_flows' hypotheses are combined: "agree" weighs each
-                                    # pixel's by how well its two warps agree, "mean" averages them
-                                    # (research/QUALITY.md findings 20, 21)
-    between_flow_splat: bool = True  # the flows push the two frames forward (a forward splat, as
-                                    # between_splat says; which flows: between_push) instead of
-                                    # sampling them backward, the backward prediction filling the
-                                    # pixels that no source pixel reaches (research/QUALITY.md findings
-                                    # 21, 22)
-    between_model: float = 0.5      # from densify_until on, the in-between target is this blend of
-                                    # the pair's frames warped along the motion the model itself
-                                    # renders there and the flow interpolation (train/between.py;
-                                    # 0: the flow's alone; 1: the model's alone; research/QUALITY.md
-                                    # finding 19)
-    between_model_splat: bool = True  # the model's prediction in the in-between target pushes the
-                                    # two frames forward along the motion the model renders at
-                                    # their own times (two more renders per such step) instead of
-                                    # sampling them along the motion it renders at s (train/
-                                    # between.py splat_interpolation; research/QUALITY.md finding 20)
-    between_push: str = "fused"     # which flows between_flow_splat pushes forward (train/between.py
-                                    # PUSH_MODES): "fused" one flow per direction, fused per pixel
-                                    # from the estimators by forward-backward consistency (two host
-                                    # splats); "each" every estimator's own (six; research/QUALITY.md
-                                    # finding 22)
-    between_motion_refresh: int = 500  # with between_model_splat: the motion the model renders at
-                                    # a pair's two frames is rendered over the whole pair, scaled to
-                                    # each step's time and kept this many steps (two renders fewer
-                                    # in most late in-between steps); 0: rendered to the step's time
-                                    # in every such step (train/between.py BetweenSampler;
-                                    # research/QUALITY.md finding 22)
-    between_splat: str = "reverse"  # how a forward splat makes its image (train/between.py
-                                    # SPLAT_MODES): "colour" shares the colours bilinearly among
-                                    # the four pixels where they land, which blurs at fractional
-                                    # offsets; "reverse" splats the displacement, reverses it and
-                                    # samples the frame along it with between_sampler (sharper
-                                    # targets; research/QUALITY.md finding 21)
-    max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
-                                    # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
-                                    # the initial Gaussians live short parts of a long sequence
-                                    # (ALIVE_PER_PIXEL alive per pixel at a time)
-    flow_method: str = "dis_fine"   # pseudo ground-truth optical flow (OpenCV, data/flow.py METHODS):
-                                    # the flow loss's target and the initial velocities; DIS down to
-                                    # its finest level, closer to exact flow than DIS's default preset
-                                    # (research/QUALITY.md finding 23); "dis" is 4x faster
-    flow_max_pixels: int = FLOW_MAX_PIXELS  # the estimators see frames larger than this many
-                                    # pixels area-averaged to at most this many, and their flows are
-                                    # scaled back up (data/flow.py estimation_size; 320x256 for
-                                    # the 640x512 EndoNeRF frames); 0: the training size
     sh_degree: int = -1             # view-dependent colour: degree 0..3 of the spherical harmonics in
                                     # every TEASH frequency; -1: chosen per scene (resolve_sh_degree):
                                     # 1 when every training frame is seen from one camera centre (a
                                     # fixed endoscope), else 3 (3DGS)
     temporal_freqs: int = 2
-    # -- learning rates (Adam, eps 1e-15; see ops/adam.py) ----------------------------------------
+
+
+@dataclass(frozen=True)
+class OptimSettings:
+    """Adam's learning rates per parameter group (eps 1e-15; Trainer.group_lrs, ops/adam.py)."""
     lr_position_init: float = 6.4e-4   # x scene extent, decays log-linearly ...
     lr_position_final: float = 6.4e-6  # ... to this (x extent) at lr_position_steps; both 4x
                                         # 3DGS's 1.6e-4 / 1.6e-6: the Gaussians of a deforming
@@ -223,7 +154,15 @@ class TrainConfig:
                                         # (parameters and moments), as gsplat's SelectiveAdam: a 4D
                                         # Gaussian outside its lifetime does not drift on momentum,
                                         # and Adam reads only the live rows (ops/adam.py)
-    # -- adaptive density control (3DGS) ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DensifySettings:
+    """Adaptive density control, 3DGS's (train/densify.py, Trainer.densify / reset_opacity)."""
+    max_gaussians: int = 0          # densification stops adding Gaussians beyond this count; 0:
+                                    # MAX_GAUSSIANS_PER_PIXEL per pixel of one frame, or more where
+                                    # the initial Gaussians live short parts of a long sequence
+                                    # (ALIVE_PER_PIXEL alive per pixel at a time)
     densify_from: int = 500
     densify_every: int = 100
     densify_until: int = 3000           # half of training, as 3DGS (15000 of 30000); like every
@@ -239,7 +178,11 @@ class TrainConfig:
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
     opacity_reset_every: int = 3000     # resets happen only before densify_until (3DGS): none by default
     opacity_reset_value: float = 0.01
-    # -- losses -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LossSettings:
+    """The loss terms and their weights (train/device_losses.py, reference/losses.py)."""
     lambda_rgb: float = 1.0
     lambda_dssim: float = 0.2           # L_rgb = (1 - 0.2) L1 + 0.2 D-SSIM
     lambda_depth: float = 0.1           # L1 of the depth in scene units (data/scene.py: the median
@@ -256,17 +199,165 @@ class TrainConfig:
     use_depth: bool = True
     use_flow: bool = True
     use_wavelet: bool = True
-    # -- rational-wavelet loss (wavelet/config.py WaveletConfig documents each; defaults from there) --
-    wavelet_q: int = _WAVELET.q                     # rational factor a = (q + 1) / q
-    wavelet_levels: int = _WAVELET.levels           # decomposition depth
-    wavelet_weight_ll: float = _WAVELET.weights[0]  # weight of each band's mean squared coefficient
-    wavelet_weight_lh: float = _WAVELET.weights[1]  # error, the same at every level
-    wavelet_weight_hl: float = _WAVELET.weights[2]
-    wavelet_weight_hh: float = _WAVELET.weights[3]
+
+
+@dataclass(frozen=True)
+class WaveletSettings:
+    """The rational-wavelet loss (wavelet/config.py WaveletConfig documents each; defaults from there)."""
+    q: int = _WAVELET.q                             # rational factor a = (q + 1) / q
+    levels: int = _WAVELET.levels                   # decomposition depth
+    weight_ll: float = _WAVELET.weights[0]          # weight of each band's mean squared coefficient
+    weight_lh: float = _WAVELET.weights[1]          # error, the same at every level
+    weight_hl: float = _WAVELET.weights[2]
+    weight_hh: float = _WAVELET.weights[3]
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    """The pseudo ground-truth optical flow (data/flow.py flow_for_scene)."""
+    method: str = "dis_fine"        # pseudo ground-truth optical flow (OpenCV, data/flow.py METHODS):
+                                    # the flow loss's target and the initial velocities; DIS down to
+                                    # its finest level, closer to exact flow than DIS's default preset
+                                    # (research/QUALITY.md finding 23); "dis" is 4x faster
+    max_pixels: int = FLOW_MAX_PIXELS       # the estimators see frames larger than this many
+                                    # pixels area-averaged to at most this many, and their flows are
+                                    # scaled back up (data/flow.py estimation_size; 320x256 for
+                                    # the 640x512 EndoNeRF frames); 0: the training size
+
+
+@dataclass(frozen=True)
+class BetweenSettings:
+    """The in-between steps and their targets (train/between.py BetweenSampler, Trainer.between_prob)."""
+    prob: float = 0.5               # fraction of steps spent at a random time between two training
+                                    # frames, supervised by the frame the pair's flow predicts there
+                                    # (train/between.py); 0: training frames only (research/QUALITY.md)
+    anneal_final: float = 0.5          # between_prob is multiplied by a factor that falls linearly
+                                    # from 1 at densify_until to this at the last step (0: the run
+                                    # ends on the training frames alone; 1: constant; 0.5: what
+                                    # suits the real and the synthetic scenes, QUALITY.md finding 11)
+    s: str = "uniform"              # where in the pair an in-between step's time falls
+                                    # (train/between.py S_DISTRIBUTIONS): "uniform" over it, or
+                                    # "triangular", twice as often at its middle and falling to
+                                    # none at its two frames; it moves quality towards the
+                                    # middle, not up (research/QUALITY.md finding 30)
+    path: str = "quadratic"          # how the in-between target moves a pixel between the pair's
+                                    # frames (train/between.py PATHS): "quadratic", along the
+                                    # parabola through its positions in the pair's frames and in
+                                    # the training frame beyond the pair on each side (tissue that
+                                    # speeds up or slows down); "linear", at constant velocity
+                                    # along the pair's flows (research/QUALITY.md finding 31)
+    levels: int = 0                 # 0: an in-between step's fraction s is drawn from a continuous
+                                    # distribution and its target built on the host at every step;
+                                    # K >= 2: s is moved onto the grid j / K (j = 1 .. K - 1) and each
+                                    # pair's flow prediction at a grid point is built once and kept
+                                    # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
+                                    # that later in-between steps cost little more than plain ones
+    sampler: str = "cubic"          # how the in-between target samples the two frames between
+                                    # pixels (warp.py SAMPLERS): "cubic" (bicubic) or "linear"
+                                    # (bilinear, which at half-pixel offsets averages two pixels
+                                    # and teaches a blurred frame; research/QUALITY.md finding 10)
+    flows: str = "dis,farneback"          # further flow estimators (comma-separated,
+                                    # data/flow.py METHODS) whose interpolations are fused with
+                                    # flow_method's in the in-between target, per pixel by how well
+                                    # each one's two warps agree (train/between.py
+                                    # fused_interpolation; research/QUALITY.md finding 20); "":
+                                    # flow_method's alone
+    fuse: str = "agree"             # how between_flows' hypotheses are combined: "agree" weighs each
+                                    # pixel's by how well its two warps agree, "mean" averages them
+                                    # (research/QUALITY.md findings 20, 21)
+    flow_splat: bool = True          # the flows push the two frames forward (a forward splat, as
+                                    # between_splat says; which flows: between_push) instead of
+                                    # sampling them backward, the backward prediction filling the
+                                    # pixels that no source pixel reaches (research/QUALITY.md findings
+                                    # 21, 22)
+    model: float = 0.5              # from densify_until on, the in-between target is this blend of
+                                    # the pair's frames warped along the motion the model itself
+                                    # renders there and the flow interpolation (train/between.py;
+                                    # 0: the flow's alone; 1: the model's alone; research/QUALITY.md
+                                    # finding 19)
+    model_splat: bool = True          # the model's prediction in the in-between target pushes the
+                                    # two frames forward along the motion the model renders at
+                                    # their own times (two more renders per such step) instead of
+                                    # sampling them along the motion it renders at s (train/
+                                    # between.py splat_interpolation; research/QUALITY.md finding 20)
+    push: str = "fused"             # which flows between_flow_splat pushes forward (train/between.py
+                                    # PUSH_MODES): "fused" one flow per direction, fused per pixel
+                                    # from the estimators by forward-backward consistency (two host
+                                    # splats); "each" every estimator's own (six; research/QUALITY.md
+                                    # finding 22)
+    motion_refresh: int = 500          # with between_model_splat: the motion the model renders at
+                                    # a pair's two frames is rendered over the whole pair, scaled to
+                                    # each step's time and kept this many steps (two renders fewer
+                                    # in most late in-between steps); 0: rendered to the step's time
+                                    # in every such step (train/between.py BetweenSampler;
+                                    # research/QUALITY.md finding 22)
+    splat: str = "reverse"          # how a forward splat makes its image (train/between.py
+                                    # SPLAT_MODES): "colour" shares the colours bilinearly among
+                                    # the four pixels where they land, which blurs at fractional
+                                    # offsets; "reverse" splats the displacement, reverses it and
+                                    # samples the frame along it with between_sampler (sharper
+                                    # targets; research/QUALITY.md finding 21)
+
+# The sections, in the order --list-settings shows them: {name: (class, the prefix its keys carry)}.
+# A flat key (--set KEY=VALUE, a TOML file, config.json) is the prefix and a section's field name:
+# between_prob is between.prob, lr_time is optim.lr_time.  FLAT, made from this, is the one map.
+SECTIONS = {
+    "schedule": (ScheduleSettings, ""),
+    "data": (DataSettings, ""),
+    "init": (InitSettings, ""),
+    "optim": (OptimSettings, ""),
+    "densify": (DensifySettings, ""),
+    "losses": (LossSettings, ""),
+    "wavelet": (WaveletSettings, "wavelet_"),
+    "flow": (FlowSettings, "flow_"),
+    "between": (BetweenSettings, "between_"),
+}
+FLAT = {prefix + f.name: (name, f.name) for name, (cls, prefix) in SECTIONS.items() for f in fields(cls)}
+
+
+@dataclass(frozen=True, init=False)
+class TrainConfig:
+    """Every training setting, in sections (SECTIONS: cfg.between.prob, cfg.optim.lr_time); each
+    flat key reads as an attribute too (cfg.between_prob), and TrainConfig(between_prob=0.3) or
+    cfg.replace(between_prob=0.3) take flat keys or whole sections.  Frozen: the resolve_* steps
+    and the other changes return a new one, so a config handed to a trainer, a plan or a loss is
+    never changed under it."""
+    recipe: str                     # the named set of values the others start from (RECIPES):
+                                    # "default", or "paper" (EndoWave as published)
+    schedule: ScheduleSettings
+    data: DataSettings
+    init: InitSettings
+    optim: OptimSettings
+    densify: DensifySettings
+    losses: LossSettings
+    wavelet: WaveletSettings
+    flow: FlowSettings
+    between: BetweenSettings
+
+    def __init__(self, recipe: str = "default", **values):
+        parts = {name: values.pop(name, None) or cls() for name, (cls, _) in SECTIONS.items()}
+        changes: Dict[str, Dict[str, Any]] = {}
+        for key, value in values.items():
+            if key not in FLAT:
+                raise TypeError(f"TrainConfig: unknown key {key!r}")
+            name, field_name = FLAT[key]
+            changes.setdefault(name, {})[field_name] = value
+        object.__setattr__(self, "recipe", recipe)
+        for name, part in parts.items():
+            object.__setattr__(self, name, replace(part, **changes[name]) if name in changes else part)
+
+    def __getattr__(self, key: str):
+        """A flat key's value (FLAT): cfg.between_prob is cfg.between.prob."""
+        where = FLAT.get(key)
+        section = None if where is None else self.__dict__.get(where[0])
+        if section is None:
+            raise AttributeError(f"'TrainConfig' object has no attribute {key!r}")
+        return getattr(section, where[1])
 
     def replace(self, **changes) -> "TrainConfig":
-        """This config with ``changes`` (key: value, not checked; with_values checks them)."""
-        return replace(self, **changes)
+        """This config with ``changes`` (flat key: value, or section name: section; not checked:
+        with_values checks them)."""
+        return TrainConfig(**{"recipe": self.recipe, **{name: getattr(self, name) for name in SECTIONS}, **changes})
 
     def resolve_iterations(self, n_train: int) -> "TrainConfig":
         """This config with iterations = 0 replaced by STEPS_PER_TRAINING_FRAME x n_train steps, at
@@ -317,14 +408,15 @@ class TrainConfig:
                                       self.wavelet_weight_hh))
 
     def to_dict(self) -> Dict[str, Any]:
-        return asdict(self)
+        """{flat key: value}, as config.json records it."""
+        return {"recipe": self.recipe, **{key: getattr(getattr(self, name), f) for key, (name, f) in FLAT.items()}}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "config dictionary") -> "TrainConfig":
         return with_values(cls(), d, source)
 
 
-_FIELDS = {f.name: f for f in fields(TrainConfig)}
+KEYS = ("recipe", *FLAT)     # every flat key, in the order --list-settings shows them
 
 # Named starting points (--recipe): the values that differ from the defaults above.  "paper" is
 # EndoWave as the paper trains it: 3DGS's learning rates and density control (opacity reset every
@@ -415,7 +507,7 @@ def with_values(cfg: TrainConfig, values: Mapping[str, Any], source: str, from_t
     for key, value in values.items():
         if key in REMOVED:
             raise EndowaveError(f"{source}: {removed_key_text(key)}; an older commit has it")
-        if key not in _FIELDS:
+        if key not in KEYS:
             raise EndowaveError(f"{source}: unknown key '{key}'{did_you_mean(key)}")
         changes[key] = _coerce(key, value, source, from_text)
     cfg = cfg.replace(**changes)
@@ -598,6 +690,7 @@ def load_config(path: Optional[str], overrides: Optional[Mapping[str, Any]] = No
 # ------------------------------------------------------------------ the keys, for people (train --list-settings)
 # what the keys without a comment of their own in TrainConfig mean
 _MEANINGS = {
+    "recipe": "the named set of values the others start from: \"default\", or \"paper\" (EndoWave as published)",
     "seed": "random seed of the initialisation and of the steps' frame order",
     "log_every": "steps between log lines (and train_curves.csv rows)",
     "eval_every": "steps between test-frame evaluations during training (0: only at the end)",
@@ -622,32 +715,33 @@ _MEANINGS = {
 def did_you_mean(key: str) -> str:
     """" (did you mean 'x'?)" for the TrainConfig key nearest to a mistyped one, else ""."""
     import difflib
-    near = difflib.get_close_matches(str(key), sorted(_FIELDS), n=1, cutoff=0.6)
+    near = difflib.get_close_matches(str(key), sorted(KEYS), n=1, cutoff=0.6)
     return f" (did you mean '{near[0]}'?)" if near else ""
 
 
 def _field_comments() -> Dict[str, str]:
-    """{key: the comment beside it in TrainConfig's source, its lines joined} (empty when the
-    source cannot be read)."""
+    """{flat key: the comment beside its field in its section's source, the lines joined} (empty
+    when the source cannot be read)."""
     import inspect
     import re
-    try:
-        lines = inspect.getsource(TrainConfig).splitlines()
-    except (OSError, TypeError):
-        return {}
     out: Dict[str, str] = {}
-    cur = None
-    for line in lines[1:]:
-        m = re.match(r"^    (\w+)\s*:", line)
-        if m and m.group(1) in _FIELDS:
-            cur = m.group(1)
-            text = _comment_of(line)
-            out[cur] = text
-        elif cur is not None and re.match(r"^ {5,}#", line):
-            more = line.strip()[1:].strip()
-            out[cur] = out[cur] + more if out[cur].endswith("-") else (out[cur] + " " + more).strip()
-        else:
-            cur = None
+    for name, (cls, prefix) in SECTIONS.items():
+        try:
+            lines = inspect.getsource(cls).splitlines()
+        except (OSError, TypeError):
+            return {}
+        names = {f.name for f in fields(cls)}
+        cur = None
+        for line in lines[1:]:
+            m = re.match(r"^    (\w+)\s*:", line)
+            if m and m.group(1) in names:
+                cur = prefix + m.group(1)
+                out[cur] = _comment_of(line)
+            elif cur is not None and re.match(r"^ {5,}#", line):
+                more = line.strip()[1:].strip()
+                out[cur] = out[cur] + more if out[cur].endswith("-") else (out[cur] + " " + more).strip()
+            else:
+                cur = None
     return out
 
 
@@ -705,25 +799,34 @@ def _values_text(name: str, default: Any) -> str:
 
 
 def settings_table():
-    """[(key, default, range or values, one-line meaning)] for every TrainConfig key, in order."""
+    """[(section, key, default, range or values, one-line meaning)] for every TrainConfig key, in
+    order (section "" for recipe)."""
     comments = _field_comments()
+    default_cfg = TrainConfig()
     rows = []
-    for f in fields(TrainConfig):
-        default = getattr(TrainConfig(), f.name)
+    for key in KEYS:
+        default = getattr(default_cfg, key)
         shown = str(default).lower() if isinstance(default, bool) else (
             repr(default) if isinstance(default, str) else f"{default:g}" if isinstance(default, float) else str(default))
-        meaning = _MEANINGS.get(f.name) or _one_line(comments.get(f.name, ""))
-        rows.append((f.name, shown, _values_text(f.name, default), meaning))
+        meaning = _MEANINGS.get(key) or _one_line(comments.get(key, ""))
+        rows.append((FLAT[key][0] if key in FLAT else "", key, shown, _values_text(key, default), meaning))
     return rows
 
 
 def settings_text() -> str:
-    """What ``endowave-cl train --list-settings`` prints."""
+    """What ``endowave-cl train --list-settings`` prints: the keys by section (SECTIONS), each
+    section headed by what reads it."""
     rows = settings_table()
-    w = [max(len(r[i]) for r in rows) for i in range(3)]
+    w = [max(len(r[i]) for r in rows) for i in range(1, 4)]
     head = ("Training settings: --set KEY=VALUE (repeatable) or KEY = VALUE lines in a --config TOML "
             "file.\nDefaults of the 'default' recipe; --recipe paper starts from: "
-            + ", ".join(f"{k}={v}" for k, v in RECIPES["paper"].items()) + ".\n\n")
+            + ", ".join(f"{k}={v}" for k, v in RECIPES["paper"].items()) + ".\n")
     lines = [f"{'key':<{w[0]}}  {'default':<{w[1]}}  {'range / values':<{w[2]}}  meaning"]
-    lines += [f"{k:<{w[0]}}  {d:<{w[1]}}  {v:<{w[2]}}  {m}".rstrip() for k, d, v, m in rows]
-    return head + "\n".join(lines) + "\n"
+    section = None
+    for sec, k, d, v, m in rows:
+        if sec != section and sec:
+            doc = (SECTIONS[sec][0].__doc__ or "").strip().splitlines()[0]
+            lines.append(f"\n[{sec}]  {doc}")
+        section = sec
+        lines.append(f"{k:<{w[0]}}  {d:<{w[1]}}  {v:<{w[2]}}  {m}".rstrip())
+    return head + "\n" + "\n".join(lines) + "\n"
