@@ -4,7 +4,8 @@
  *
  * Every pixel p with g = ca A (+ cb B) (g [H, W, 2], read as between_sample.h path_at) lands at
  * p + g and is shared among the four pixels around it with bilinear weights w (float products, as
- * the host's), times its source weight (0 on a tool pixel: mask <= 0.5, with has_mask).  Per
+ * the host's), times its source weight (0 on a tool pixel: the frame img [H, W, 4]'s mask channel
+ * <= 0.5, with has_mask).  Per
  * target pixel the kernel sums (w, -w g.x, -w g.y) into acc [H, W, 3] as 64-bit fixed point (units
  * of 2^-SPLAT_FRAC_BITS, each term rounded to the nearest unit, saturated): integer atomic sums
  * are the same in every order, so the splat is deterministic on every device.  Non-finite paths
@@ -24,11 +25,11 @@ inline void splat_add(volatile __global long *acc, const float w, const float2 g
 
 __kernel void between_splat(__global const float *a, const int pa, const int oa, const float ca,
                             __global const float *b, const int pb, const int ob, const float cb, const int nb,
-                            __global const float *mask, const int has_mask, const int W, const int H,
+                            __global const float4 *img, const int has_mask, const int W, const int H,
                             volatile __global long *acc) {
     const int i = get_global_id(0);
     if (i >= W * H) return;
-    if (has_mask && !(mask[i] > 0.5f)) return;
+    if (has_mask && !(img[i].w > 0.5f)) return;
     const float2 g = path_at(a, pa, oa, ca, b, pb, ob, cb, nb, i);
     const float x = (float)(i % W) + g.x, y = (float)(i / W) + g.y;
     if (!(isfinite(x) && isfinite(y))) return;

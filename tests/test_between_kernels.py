@@ -13,12 +13,13 @@ import pyopencl.array as cla
 import pytest
 
 from conftest import small
-from endowave_cl.ops.between import (Frame, Path, between_fuse, between_mix, between_push, between_splat,
-                                     between_warp, stack)
+from endowave_cl.ops.between import (Path, between_fuse, between_mix, between_push, between_splat, between_warp,
+                                     frame_on_device, stack)
 from endowave_cl.reference.between import (between_fuse_ref, between_mix_ref, between_push_ref,
                                            between_splat_ref, between_warp_ref, paths_ref)
 
 TOL = 2e-5          # float rounding of values in [0, 1]
+TRAIN_TOL = 1e-5    # the means after 12 steps with device against host targets (scene units ~1)
 
 
 def _scene(h, w, seed, masks=True):
@@ -37,7 +38,7 @@ def _up(rt, a):
 
 
 def _frame(rt, img, mask):
-    return Frame(_up(rt, img), float(img.min()), float(img.max()), _up(rt, mask))
+    return frame_on_device(rt, img, mask)
 
 
 def _close(got, want, tol=TOL):
@@ -123,13 +124,14 @@ def test_splat_matches_host(rt, masks):
     g[-1, -1] = (0.7, 0.2)       # across the bottom-right one
     g[1, 1] = np.nan             # reaches nothing
     g[2, 2] = (1e12, 0)          # far outside
-    acc = between_splat(rt, Path(_up(rt, g), 1.0), h, w, _up(rt, mask[0])).get()
+    f = _frame(rt, img[0], mask[0])
+    acc = between_splat(rt, Path(_up(rt, g), 1.0), f).get()
     den, num = between_splat_ref(g, mask[0])
     unit = 2.0 ** -32
     np.testing.assert_allclose(acc[..., 0] * unit, den, atol=1e-6)
     np.testing.assert_allclose(acc[..., 1:] * unit, num, atol=1e-5, rtol=1e-6)
     # zero motion: each pixel lands on itself with weight 1 (0 on tool pixels)
-    z = between_splat(rt, Path(_up(rt, np.zeros((h, w, 2))), 1.0), h, w, _up(rt, mask[0])).get()
+    z = between_splat(rt, Path(_up(rt, np.zeros((h, w, 2))), 1.0), f).get()
     np.testing.assert_array_equal(z[..., 0] * unit, 1.0 if mask[0] is None else mask[0])
     assert not z[..., 1:].any()
 
@@ -137,8 +139,8 @@ def test_splat_matches_host(rt, masks):
 def test_splat_is_deterministic(rt):
     h, w = small((64, 80), (8, 8))
     g = np.random.default_rng(6).normal(0, 0.3, (h, w, 2)).astype(np.float32)   # many pixels meet
-    G = _up(rt, g)
-    runs = [between_splat(rt, Path(G, 1.0), h, w).get() for _ in range(3)]
+    G, f = _up(rt, g), _frame(rt, np.zeros((h, w, 3), np.float32), None)
+    runs = [between_splat(rt, Path(G, 1.0), f).get() for _ in range(3)]
     for r in runs[1:]:
         np.testing.assert_array_equal(r, runs[0])
 
@@ -152,8 +154,8 @@ def test_push_matches_host(rt, sampler):
     g1[:, : w // 3] = 50.0       # the second frame reaches nothing there: the first alone, or fill
     fill = np.full((h, w, 3), 0.25, np.float32)
     f0, f1 = _frame(rt, img[0], mask[0]), _frame(rt, img[1], mask[1])
-    a0 = between_splat(rt, Path(_up(rt, g0), 1.0), h, w, f0.mask)
-    a1 = between_splat(rt, Path(_up(rt, g1), 1.0), h, w, f1.mask)
+    a0 = between_splat(rt, Path(_up(rt, g0), 1.0), f0)
+    a1 = between_splat(rt, Path(_up(rt, g1), 1.0), f1)
     got = between_push(rt, a0, a1, f0, f1, 0.6, 0.4, _up(rt, fill), 0.05, sampler).get()
     want = between_push_ref(img[0], img[1], between_splat_ref(g0, mask[0]), between_splat_ref(g1, mask[1]),
                             0.6, 0.4, fill, 0.05, sampler)
@@ -179,3 +181,94 @@ def test_mix_and_count(rt):
 def test_stack(rt):
     a = [np.full((3, 4), i, np.float32) for i in range(3)]
     np.testing.assert_array_equal(stack(rt, [_up(rt, x) for x in a]).get(), np.stack(a))
+
+
+# ------------------------------------------------------------------ the whole target, device against host
+def _sampler(rt, scene, monkeypatch, **kw):
+    from endowave_cl.train.between import BetweenSampler, between_flows
+    from conftest import tiny_config
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "device")
+    cfg = tiny_config(**kw)
+    flows, extra = between_flows(scene, cfg)
+    b = BetweenSampler.from_config(rt, scene, cfg, flows, extra)
+    assert b.device is not None
+    return b
+
+
+def _compare_targets(b, draws, seed):
+    """The device target (DeviceTarget.build) against the host's (BetweenSampler.target) for draws
+    (pair index, s), without and with the model's motion (random, as a render's would be)."""
+    rng = np.random.default_rng(seed)
+    h, w = b.scene.height, b.scene.width
+    for index, s in draws:
+        disp, g0, g1 = (rng.normal(0, 1.5, (h, w, 2)).astype(np.float32) for _ in range(3))
+        for model in (False, True):
+            fwd = ((g0, np.float32(s)), (g1, np.float32(1 - s))) if model else None
+            args = (disp, 0.5) if model else (None, 0.0)
+            image, weight, count = b.device.build(index, s, *args, fwd)
+            want, want_w, _ = b.target(index, s, *args, None if fwd is None else (fwd[0][1] * g0, fwd[1][1] * g1))
+            _close(image.get(), want)
+            np.testing.assert_array_equal(weight.get(), want_w)
+            assert int(count.get()[0]) == int((want_w > 0).sum())
+
+
+@pytest.mark.parametrize("settings", [{}, dict(between_path="linear", between_fuse="mean"),
+                                      dict(between_flow_splat=False, between_sampler="linear"),
+                                      dict(between_flows="")])
+def test_device_target_matches_host_target(rt, tiny_scene, monkeypatch, settings):
+    from endowave_cl.data.scene import load_scene
+    b = _sampler(rt, load_scene(tiny_scene), monkeypatch, **settings)
+    n = len(b.pairs)
+    _compare_targets(b, [(0, 0.5), (n - 1, 0.13), (n // 2, 0.9)], 0)
+
+
+def test_device_target_matches_host_target_on_pulling(rt, pulling_scene, monkeypatch):
+    """The default settings on the real frames (three estimators, tool masks, curved paths)."""
+    from endowave_cl.data.scene import load_scene
+    b = _sampler(rt, load_scene(pulling_scene, downscale=4), monkeypatch)
+    _compare_targets(b, [(0, 0.41), (len(b.pairs) - 1, 0.77), (17, 0.05)], 1)
+
+
+def test_where_the_targets_are_built(rt, tiny_scene, monkeypatch):
+    """auto: on a GPU only; 'host' always on the host; the research settings the kernels do not
+    cover on the host; a bad value is the one-line EnvError."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.env import EnvError
+    from endowave_cl.train.between import BetweenSampler, targets_on_device
+    scene = load_scene(tiny_scene)
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "auto")
+    assert targets_on_device(rt) == rt.is_gpu
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "host")
+    assert not targets_on_device(rt)
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "device")
+    from endowave_cl.train.between import between_flows
+    from conftest import tiny_config
+    cfg = tiny_config(between_push="each")
+    flows, extra = between_flows(scene, cfg)
+    assert BetweenSampler.from_config(rt, scene, cfg, flows, extra).device is None
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "gpu")
+    with pytest.raises(EnvError, match="ENDOWAVE_BETWEEN_TARGET"):
+        targets_on_device(rt)
+
+
+def test_training_with_device_targets(rt, tiny_scene, tmp_path, monkeypatch):
+    """A short training whose in-between steps (before and after densify_until: the model's motion
+    blended in) take their targets from the device: the same result twice (the splats' integer sums
+    are order-free), and within TRAIN_TOL of the host-built targets' run over 12 steps (the targets
+    differ by float rounding only)."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import download
+    from endowave_cl.train.trainer import Trainer
+    from conftest import tiny_config
+    scene = load_scene(tiny_scene)
+    out = {}
+    for name, where in (("device", "device"), ("again", "device"), ("host", "host")):
+        monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", where)
+        tr = Trainer(scene, tiny_config(iterations=12, init_points=1500, between_prob=1.0, densify_from=1000,
+                                        densify_until=6, between_motion_refresh=4, deterministic=True),
+                     tmp_path / name, rt, log=lambda s: None)
+        assert (tr._between.device is not None) == (where == "device")
+        tr.train(progress=False)
+        out[name] = download(tr.params).means
+    np.testing.assert_array_equal(out["device"], out["again"])
+    np.testing.assert_allclose(out["device"], out["host"], rtol=0, atol=TRAIN_TOL)

@@ -4,7 +4,8 @@ model's prediction mixed in.  Each kernel's reference is the host path it replac
 (reference/between.py, which calls train/between.py and warp.py); train/between.py chains them
 (DeviceTarget).  The targets are constants of the loss: no stage has an adjoint.
 
-Shapes: images [H, W, 3], masks and weights [H, W], float32 device arrays (pyopencl), paths given
+Shapes: frames [H, W, 4] (RGB and tool mask, frame_on_device), images [H, W, 3], masks and weights
+[H, W], float32 device arrays (pyopencl), paths given
 as a Path: g = ca A (+ cb B) with A, B device arrays of H x W pixels of ``pitch`` floats each,
 the path's two components at ``offset`` (a render's feature image serves as it is).
 """
@@ -47,12 +48,28 @@ class Path:
 
 @dataclass
 class Frame:
-    """A frame as the stages read it: image [H, W, 3], its value range (np.min, np.max: the
-    bicubic samples are clipped to it, as warp.sample_displaced does), mask [H, W] or None."""
+    """A frame as the stages read it: image [H, W, 4] device array (RGB and the tool mask, 1 without
+    one: frame_on_device), its colour's range (np.min, np.max: the bicubic samples are clipped to
+    it, as warp.sample_displaced does), and whether it has a mask."""
     image: object
     lo: float
     hi: float
-    mask: Optional[object] = None
+    has_mask: bool = False
+
+
+def frame_on_device(rt, image: np.ndarray, mask: Optional[np.ndarray] = None) -> Frame:
+    """A Frame of image [H, W, 3] and mask [H, W] (or None), uploaded."""
+    import pyopencl.array as cla
+    image = np.asarray(image, np.float32)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"between: a frame image must be [H, W, 3], got {image.shape}")
+    if mask is not None and np.shape(mask) != image.shape[:2]:
+        raise ValueError(f"between: a frame mask must be [H, W] = {image.shape[:2]}, got {np.shape(mask)}")
+    packed = np.ones(image.shape[:2] + (4,), np.float32)                              # [H, W, 4]
+    packed[..., :3] = image
+    if mask is not None:
+        packed[..., 3] = mask
+    return Frame(cla.to_device(rt.queue, packed), float(image.min()), float(image.max()), mask is not None)
 
 
 def _sampler_options(sampler: str):
@@ -63,8 +80,8 @@ def _sampler_options(sampler: str):
 
 def _size(frame: Frame):
     h, w = (int(v) for v in frame.image.shape[:2])
-    if frame.image.shape != (h, w, 3):
-        raise ValueError(f"between: a frame image must be [H, W, 3], got {tuple(frame.image.shape)}")
+    if frame.image.shape != (h, w, 4):
+        raise ValueError(f"between: a Frame's image must be [H, W, 4] (frame_on_device), got {tuple(frame.image.shape)}")
     return h, w
 
 
@@ -78,8 +95,8 @@ def between_warp(rt, f0: Frame, f1: Frame, g0: Path, g1: Path, wa: float, wb: fl
         out = (rt.empty((h, w, 3)), rt.empty((h, w)), rt.empty((h, w)))
     k = rt.kernel("between_warp.cl", "between_warp", _sampler_options(sampler))
     rt.launch_1d(k, h * w, WORK_GROUP, f0.image.data, f1.image.data, np.float32(f0.lo), np.float32(f0.hi),
-                 np.float32(f1.lo), np.float32(f1.hi), rt.buf(f0.mask), np.int32(f0.mask is not None),
-                 rt.buf(f1.mask), np.int32(f1.mask is not None), *g0.args(rt), *g1.args(rt),
+                 np.float32(f1.lo), np.float32(f1.hi), np.int32(f0.has_mask), np.int32(f1.has_mask),
+                 *g0.args(rt), *g1.args(rt),
                  np.int32(w), np.int32(h), np.float32(wa), np.float32(wb), *(a.data for a in out))
     return out
 
@@ -97,7 +114,12 @@ def between_fuse(rt, blend, diff, ok, radius: int, tau: float, mode: str = "agre
     opts = [f"-DFUSE_RADIUS={int(radius)}", f"-DFUSE_TAU_INV={f32_literal(1.0 / tau)}",
             f"-DMAX_K={MAX_HYPOTHESES}"] + (["-DAGREE"] if mode == "agree" else [])
     image, weight = rt.empty((h, w, 3)), rt.empty((h, w))
-    rt.launch_1d(rt.kernel("between_fuse.cl", "between_fuse", opts), h * w, WORK_GROUP, blend.data, diff.data,
+    rows = diff
+    if mode == "agree":
+        rows = rt.empty((K, h, w))
+        rt.launch_1d(rt.kernel("between_fuse.cl", "between_box_rows", opts), K * h * w, WORK_GROUP, diff.data,
+                     np.int32(K), np.int32(w), np.int32(h), rows.data)
+    rt.launch_1d(rt.kernel("between_fuse.cl", "between_fuse", opts), h * w, WORK_GROUP, blend.data, rows.data,
                  ok.data, np.int32(K), np.int32(w), np.int32(h), image.data, weight.data)
     return image, weight
 
@@ -109,16 +131,17 @@ def check_int64_atomics(rt) -> None:
                            f"target's splat needs")
 
 
-def between_splat(rt, g: Path, h: int, w: int, mask=None, acc=None):
-    """acc [H, W, 3] int64: every pixel p (not a tool pixel of mask) splatted forward to p + g(p)
+def between_splat(rt, g: Path, frame: Frame, acc=None):
+    """acc [H, W, 3] int64: every pixel p (not a tool pixel of frame) splatted forward to p + g(p)
     with bilinear weights, as fixed-point sums of (weight, weight x -g) in units of
     2^-SPLAT_FRAC_BITS (cl/between_splat.cl; deterministic in every order)."""
     check_int64_atomics(rt)
+    h, w = _size(frame)
     if acc is None:
         acc = rt.empty((h, w, 3), np.int64)
     rt.cl.enqueue_fill_buffer(rt.queue, acc.data, np.int64(0), 0, acc.nbytes)
     k = rt.kernel("between_splat.cl", "between_splat", [f"-DSPLAT_FRAC_BITS={SPLAT_FRAC_BITS}"])
-    rt.launch_1d(k, h * w, WORK_GROUP, *g.args(rt), rt.buf(mask), np.int32(mask is not None), np.int32(w),
+    rt.launch_1d(k, h * w, WORK_GROUP, *g.args(rt), frame.image.data, np.int32(frame.has_mask), np.int32(w),
                  np.int32(h), acc.data)
     return acc
 

@@ -82,6 +82,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
+from .. import env
 from ..warp import sample_displaced, splat_forward
 # the in-between modes' names are settings' values, listed in config.py (read from here too)
 from .config import (FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES,  # noqa: F401
@@ -99,6 +100,11 @@ PUSH_TAU = 1.0
 # between_levels: the most host memory the flow predictions kept per grid point may take (bytes);
 # past it the predictions of further (pair, grid point)s are made at every draw
 TARGET_CACHE_BYTES = 2 << 30
+# where the in-between targets are built: "device" (train/between_device.py), "host" (OpenCV and
+# numpy, the reference path) or "auto": the device on a GPU, the host on a CPU device, where the
+# same cores run both and OpenCV's remap outruns the kernels (benchmarks/bench_train_loop.py
+# --both-paths)
+ENV_BETWEEN_TARGET = "ENDOWAVE_BETWEEN_TARGET"
 # splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
 # that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
@@ -499,6 +505,12 @@ def pair_time(scene, pair, s: float) -> float:
     return (1.0 - s) * float(scene.frames[pair.src].time) + s * float(scene.frames[pair.dst].time)
 
 
+def targets_on_device(rt) -> bool:
+    """Whether in-between targets are built on rt's device (ENV_BETWEEN_TARGET; auto: on a GPU)."""
+    where = env.get(ENV_BETWEEN_TARGET, "auto")
+    return where == "device" or (where == "auto" and rt.is_gpu)
+
+
 class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair,
     then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly.  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
@@ -532,6 +544,18 @@ class BetweenSampler:
         self._motion: Dict[int, Tuple[int, np.ndarray, np.ndarray]] = {}   # pair index -> (step, G0, G1)
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
+        # the target built on the device (train/between_device.py) where a device is given, its
+        # kernels cover the settings and ENV_BETWEEN_TARGET chooses it; else on the host
+        self.device = None
+        from .between_device import supported
+        if rt is not None and self.pairs and supported(flow_splat, push, splat) and targets_on_device(rt):
+            self.device = self.device_target()
+
+    def device_target(self):
+        """A between_device.DeviceTarget of this sampler on its runtime: the pairs' frames and
+        flows uploaded, their fused flows and Bends made."""
+        from .between_device import DeviceTarget
+        return DeviceTarget(self.rt, self, FUSE_RADIUS, FUSE_TAU, SPLAT_MIN_WEIGHT, pair_bend)
 
     def extra(self, pair) -> List[object]:
         """The further estimators' FlowPairs of the pair's two frames."""
@@ -546,20 +570,27 @@ class BetweenSampler:
         from t to t_to, blended into the target with model_weight (between_target); it is called
         first at the step's own time, then (model_splat) at the pair's two frames' times, unless
         their motion rendered within motion_refresh steps before ``step`` is kept."""
-        from .device_losses import prepare_targets
+        from .device_losses import device_targets, prepare_targets
         index = int(rng.integers(len(self.pairs)))
         pair = self.pairs[index]
         s = level_fraction(draw_fraction(rng, self.s_distribution), self.levels)
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-        disp = fwd = None
+        t = pair_time(self.scene, pair, s)
+        disp = fwd = None       # fwd: ((motion, factor or None), ...) of the two frames
         if model_flow is not None and model_weight > 0.0:
-            t = pair_time(self.scene, pair, s)
             disp = model_flow(f0.camera, t, float(f0.time))
             if self.model_splat and self.motion_refresh > 0:
                 g0, g1 = self._pair_motion(index, model_flow, step)
-                fwd = (np.float32(s) * g0, np.float32(1.0 - s) * g1)
+                fwd = ((g0, np.float32(s)), (g1, np.float32(1.0 - s)))
             elif self.model_splat:
-                fwd = (model_flow(f0.camera, float(f0.time), t), model_flow(f1.camera, float(f1.time), t))
+                fwd = ((model_flow(f0.camera, float(f0.time), t), None), (model_flow(f1.camera, float(f1.time), t), None))
+        if self.device is not None:
+            image, weight, count = self.device.build(index, s, disp, model_weight, fwd)
+            supervised = int(count.get()[0])      # the step's one read of its target: the loss's denominator
+            if supervised == 0:
+                return None
+            return f0.camera, t, device_targets(self.rt, image, weight, supervised)
+        fwd = None if fwd is None else tuple(g if c is None else c * g for g, c in fwd)
         image, weight, t = self.target(index, s, disp, model_weight, fwd)
         if not weight.any():
             return None

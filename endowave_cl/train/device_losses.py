@@ -71,6 +71,15 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     return t
 
 
+def device_targets(rt, image, weight, supervised: int) -> DeviceTargets:
+    """The DeviceTargets of an image [H, W, 3] and a 0 / 1 weight [H, W] made on the device (an
+    in-between target, train/between_device.py), as prepare_targets(rt, image, weight,
+    temporary=True) makes them from host arrays; supervised: the pixels whose weight is 1."""
+    t = DeviceTargets(image, weight, True, max(3.0 * float(supervised), 1.0), None, None, 1.0, None, None, 1.0)
+    t.ssim_target = _ssim_target(rt, t.image, t.mask, rt.pool())
+    return t
+
+
 def _ssim_target(rt, image, mask, allocator=None) -> object:
     """The target's SSIM maps (y m, (y m)^2) blurred: they do not depend on the render, so they are
     made once per frame here instead of in every step."""

@@ -233,6 +233,17 @@ class Trainer:
         camera, t, dev = drawn
         return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))
 
+    def schedule_step(self, order: List[int]):
+        """One step as the schedule draws it (train's loop; benchmarks/bench_train_loop.py times it):
+        an in-between step with chance between_prob(step), else, or where the in-between target
+        supervises nothing, a step on a training frame drawn uniformly from order.  ("between",
+        its loss parts) or ("plain", its loss parts)."""
+        if self._between and self.rng.random() < self.between_prob(self.step):
+            parts = self.train_step_between()      # an in-between time (train/between.py)
+            if parts is not None:
+                return "between", parts
+        return "plain", self.train_step(order[int(self.rng.integers(len(order)))])
+
     @property
     def select_live(self) -> bool:
         """Steps render and differentiate only the Gaussians alive at their time (ops/select.py)
@@ -241,9 +252,12 @@ class Trainer:
         from ..ops.select import select_enabled
         return bool(self.cfg.adam_skip_culled) and select_enabled()
 
-    @staticmethod
-    def rendered_motion(out) -> np.ndarray:
-        """[H, W, 2]: the flow channels of a render, where each pixel's Gaussians lie at t_flow."""
+    def rendered_motion(self, out):
+        """[H, W, 2]: the flow channels of a render, where each pixel's Gaussians lie at t_flow: a
+        device array where the in-between targets are built on the device, else read back."""
+        if getattr(self, "_between", None) is not None and self._between.device is not None:
+            from .between_device import motion_on_device
+            return motion_on_device(self.rt, out.features, FLOW.start)
         return out.features.get()[..., FLOW]
 
     def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Dict[str, float]:
@@ -420,11 +434,8 @@ class Trainer:
                 bar.write(f"time budget of {c.minutes:g} min reached at step {self.step}")
                 break
             t_step = time.perf_counter()
-            between = None
-            if self._between and self.rng.random() < self.between_prob(self.step):
-                between = self.train_step_between()      # an in-between time (train/between.py)
-            if between is None:
-                parts = self.train_step(order[int(self.rng.integers(len(order)))])
+            kind, parts = self.schedule_step(order)
+            if kind == "plain":
                 # the log and the divergence guard follow the training frames only
                 ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
             step_times.append(time.perf_counter() - t_step)
