@@ -15,7 +15,9 @@
 #   4. runs the kernel test suite on that device, benchmarks/peak_probe.py, benchmarks/perf_table.py,
 #      benchmarks/bench_render.py and benchmarks/bench_train_step.py --kernels there (each part's kernel time
 #      beside its wall time; on the frames of --scene DIR, else on ../shared's pulling frames when
-#      they are beside the checkout, else on a synthetic 640x512 scene);
+#      they are beside the checkout, else on a synthetic 640x512 scene), and
+#      benchmarks/bench_train_loop.py --both-paths (the schedule's plain and in-between steps, the
+#      in-between targets built on the device and on the host; real frames only);
 #   5. writes everything to one report file (--out, default gpu_check_<host>_<date>.txt).
 #
 # --dry-run: when no GPU is found (or always, with --dry-run), run every step on whatever device
@@ -172,7 +174,8 @@ if [ $DRY -eq 1 ]; then RUNS=3; STEPS=3; N=20000; else RUNS=7; STEPS=10; N=10000
 [ $QUICK -eq 1 ] && { RUNS=3; STEPS=3; }
 KERNEL_TESTS=(tests/test_project4d.py tests/test_rasterize.py tests/test_binning.py tests/test_scan_sort.py
               tests/test_render.py tests/test_adam.py tests/test_device_losses.py tests/test_wavelet.py
-              tests/test_wavelet_loss.py tests/test_util_ops.py tests/test_runtime.py tests/test_select.py)
+              tests/test_wavelet_loss.py tests/test_util_ops.py tests/test_runtime.py tests/test_select.py
+              tests/test_between_kernels.py)
 section "4a. Kernel tests on the selected device"
 ( cd "$ROOT" && run "$PY" -m pytest -q -ra -p no:cacheprovider "${KERNEL_TESTS[@]}" ) || FAILED+=("kernel tests")
 section "4b. Peaks (benchmarks/peak_probe.py)"
@@ -192,6 +195,9 @@ if [ -n "$SCENE" ]; then
 fi
 run "$PY" "$ROOT/benchmarks/bench_train_step.py" --kernels --runs "$STEPS" --warmup 2 --gaussians "$N" ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
     || FAILED+=("bench_train_step")
+section "4f. benchmarks/bench_train_loop.py (the schedule's steps per kind; in-between targets on the device and on the host)"
+run "$PY" "$ROOT/benchmarks/bench_train_loop.py" --both-paths --steps $((STEPS * 4)) ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
+    || FAILED+=("bench_train_loop")
 
 section "done"
 if [ ${#FAILED[@]} -eq 0 ]; then
