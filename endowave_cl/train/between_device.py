@@ -9,6 +9,9 @@ pair.  Every step then enqueues, per estimator, one backward warp of the pair's 
 reversed pushes; and after densify_until the model's warp along the motion its forward rendered,
 the splats along the pair's kept motion, and the blend.
 
+With between_levels the fraction s is on the sampler's grid as on the host, and the target is built
+at every draw (the host keeps float16 copies per grid point instead, within 5e-4 of these).
+
 The host path (train/between.py between_target) is the reference: tests/test_between_kernels.py
 compares the two.  It builds the target where these kernels do not cover the settings
 (``supported``: between_push "each" or between_splat "colour", research settings), where no device
