@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -45,6 +44,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_train_step import SHARED_SCENE  # noqa: E402
+from endowave_cl.device import cpu_name  # noqa: E402
 from kernel_events import kernel_ms, profile_launches  # noqa: E402
 
 KINDS = ("plain", "between", "between_late", "between_late+motion")
@@ -52,15 +52,7 @@ KINDS = ("plain", "between", "between_late", "between_late+motion")
 
 def machine() -> str:
     """'CPU model, N cores' of this host."""
-    name = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                name = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{name}, {os.cpu_count()} cores"
+    return f"{cpu_name()}, {os.cpu_count()} cores"
 
 
 def load() -> str:

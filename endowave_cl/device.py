@@ -16,6 +16,7 @@ a ``platform:device`` index pair (``"0:0"``), or a case-insensitive substring of
 """
 from __future__ import annotations
 
+import platform
 import re
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
@@ -50,6 +51,19 @@ class OpenCLUnavailable(RuntimeError):
     """No OpenCL platform or no device matching the request."""
 
 
+
+
+def cpu_name() -> str:
+    """The host CPU's model name (Linux /proc/cpuinfo), else what platform knows: the machine line
+    of the tools' and benchmarks' reports."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 def oclgrind_mode() -> bool:
     return env.flag(ENV_OCLGRIND)

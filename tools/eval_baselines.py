@@ -23,18 +23,6 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 
-def _cpu_name() -> str:
-    """The CPU model (Linux /proc/cpuinfo), else what platform knows."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", help="scene folder in the EndoNeRF layout")
@@ -52,6 +40,7 @@ def main(argv=None) -> int:
     from endowave_cl.atomic import write_bytes_atomic
     from endowave_cl.baselines import LABELS, NAMES, baseline_scores, summarise
     from endowave_cl.data.scene import apply_split, load_scene
+    from endowave_cl.device import cpu_name
     from endowave_cl.errors import EndowaveError
     from endowave_cl.evaluation import flow_references
     from endowave_cl.lpips import lpips_available
@@ -70,7 +59,7 @@ def main(argv=None) -> int:
         print(f"eval_baselines: error: {e}", file=sys.stderr)
         return 1
 
-    print(f"host: {_cpu_name()}, {os.cpu_count()} CPUs, OpenCV {cv2.__version__}, Python {platform.python_version()}")
+    print(f"host: {cpu_name()}, {os.cpu_count()} CPUs, OpenCV {cv2.__version__}, Python {platform.python_version()}")
     print(f"scene: {args.scene}, {scene.summary()}")
     lp_note = "" if use_lpips else " (n/a: --no-lpips or weights not installed)"
     print(f"{len(rows)} {scene.split} frames; PSNR = whole image of masked images, masked = tissue pixels only; "
@@ -99,7 +88,7 @@ def main(argv=None) -> int:
     if args.json:
         out = {"scene": str(args.scene), "size": [scene.width, scene.height], "downscale": args.downscale,
                "baselines": summary, "per_frame": rows, "flow": dis_flow,
-               "host": _cpu_name(), "cpus": os.cpu_count(), "opencv": cv2.__version__}
+               "host": cpu_name(), "cpus": os.cpu_count(), "opencv": cv2.__version__}
         write_bytes_atomic(args.json, json.dumps(out, indent=1).encode())
         print(f"wrote {args.json}")
     return 0

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -117,22 +116,13 @@ def read_eval(run: Path, split: str) -> dict:
     return m
 
 
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _fmt(v, spec=".2f") -> str:
     return "n/a" if v is None else format(v, spec)
 
 
 def main(argv=None) -> int:
+    from endowave_cl.device import cpu_name
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tag", required=True, help="name of the candidate (its runs go to OUT/TAG)")
     ap.add_argument("--out", default="runs/validate", help="folder of the candidates' runs (default runs/validate)")
@@ -161,7 +151,7 @@ def main(argv=None) -> int:
         ap.error(f"--seeds: expected comma-separated integers, got {a.seeds!r}")
     shared, base = Path(a.shared), Path(a.out) / a.tag
     base.mkdir(parents=True, exist_ok=True)
-    print(f"validate {a.tag} ({'TEST frames: the final report' if a.test else 'validation frames'}): host {_cpu_name()}, {os.cpu_count()} CPUs, load "
+    print(f"validate {a.tag} ({'TEST frames: the final report' if a.test else 'validation frames'}): host {cpu_name()}, {os.cpu_count()} CPUs, load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; recipe {a.recipe or 'default'}, minutes "
           f"{a.minutes or '-'}, iterations {a.iterations or '-'}, steps {a.steps or '-'}, set {a.set or '-'}", flush=True)
     runs = {}
