@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "validate.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "validate.py"
 
 
 def _scores(psnr, lpips=0.05):

@@ -32,7 +32,7 @@ PROBE = textwrap.dedent("""
 
 def _faults(keep: bool) -> int:
     import os
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     out = subprocess.run([sys.executable, "-c", PROBE.format(root=root, keep=keep)], capture_output=True,
                          text=True, check=True)
     return int(out.stdout.strip().splitlines()[-1])

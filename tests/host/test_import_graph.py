@@ -5,7 +5,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PKG = Path(__file__).resolve().parents[1] / "endowave_cl"
+PKG = Path(__file__).resolve().parents[2] / "endowave_cl"
 
 
 def _modules():

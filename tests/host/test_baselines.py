@@ -141,7 +141,7 @@ def _tool(*args):
     import subprocess
     import sys
     from pathlib import Path
-    tool = Path(__file__).resolve().parents[1] / "tools" / "eval_baselines.py"
+    tool = Path(__file__).resolve().parents[2] / "tools" / "eval_baselines.py"
     return subprocess.run([sys.executable, str(tool), *map(str, args)], capture_output=True, text=True, timeout=300)
 
 

@@ -358,7 +358,7 @@ def test_ensure_opencl_script_checks_and_changes_nothing_where_a_device_builds(m
     from pathlib import Path
     monkeypatch.delenv(R.ENV_DEVICE, raising=False)
     monkeypatch.delenv(R.ENV_OCLGRIND, raising=False)
-    script = Path(__file__).resolve().parents[1] / "tools" / "ensure_opencl.sh"
+    script = Path(__file__).resolve().parents[2] / "tools" / "ensure_opencl.sh"
     r = subprocess.run(["bash", str(script)], capture_output=True, text=True, timeout=120,
                        env={**os.environ, "PYTHON": sys.executable})
     assert r.returncode == 0, r.stdout + r.stderr
