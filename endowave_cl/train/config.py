@@ -596,30 +596,14 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
     if cfg.between_levels == 1:
         raise EndowaveError(f"{source}: key 'between_levels' must be 0 (continuous) or at least 2 (a grid of "
                             f"fractions), got 1")
-    if cfg.recipe not in RECIPES:
-        raise EndowaveError(f"{source}: key 'recipe' must be one of {', '.join(RECIPES)}, got {cfg.recipe!r}")
     from ..data.scene import SPLITS
-    if cfg.split not in SPLITS:
-        raise EndowaveError(f"{source}: key 'split' must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
     from ..warp import SAMPLERS
-    if cfg.between_sampler not in SAMPLERS:
-        raise EndowaveError(f"{source}: key 'between_sampler' must be one of {', '.join(SAMPLERS)}, "
-                            f"got {cfg.between_sampler!r}")
-    if cfg.between_path not in PATHS:
-        raise EndowaveError(f"{source}: key 'between_path' must be one of {', '.join(PATHS)}, "
-                            f"got {cfg.between_path!r}")
-    if cfg.between_s not in S_DISTRIBUTIONS:
-        raise EndowaveError(f"{source}: key 'between_s' must be one of {', '.join(S_DISTRIBUTIONS)}, "
-                            f"got {cfg.between_s!r}")
-    if cfg.between_fuse not in FUSE_MODES:
-        raise EndowaveError(f"{source}: key 'between_fuse' must be one of {', '.join(FUSE_MODES)}, "
-                            f"got {cfg.between_fuse!r}")
-    if cfg.between_push not in PUSH_MODES:
-        raise EndowaveError(f"{source}: key 'between_push' must be one of {', '.join(PUSH_MODES)}, "
-                            f"got {cfg.between_push!r}")
-    if cfg.between_splat not in SPLAT_MODES:
-        raise EndowaveError(f"{source}: key 'between_splat' must be one of {', '.join(SPLAT_MODES)}, "
-                            f"got {cfg.between_splat!r}")
+    for key, allowed in (("recipe", RECIPES), ("split", SPLITS), ("between_sampler", SAMPLERS),
+                         ("between_path", PATHS), ("between_s", S_DISTRIBUTIONS), ("between_fuse", FUSE_MODES),
+                         ("between_push", PUSH_MODES), ("between_splat", SPLAT_MODES)):
+        value = getattr(cfg, key)
+        if value not in allowed:
+            raise EndowaveError(f"{source}: key '{key}' must be one of {', '.join(allowed)}, got {value!r}")
     from ..data.flow import METHODS
     for m in between_flow_methods(cfg):
         if m not in METHODS:
