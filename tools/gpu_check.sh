@@ -172,10 +172,11 @@ fi
 # ---- 4. tests and benchmarks -------------------------------------------------------------------
 if [ $DRY -eq 1 ]; then RUNS=3; STEPS=3; N=20000; else RUNS=7; STEPS=10; N=100000; fi
 [ $QUICK -eq 1 ] && { RUNS=3; STEPS=3; }
-KERNEL_TESTS=(tests/test_project4d.py tests/test_rasterize.py tests/test_binning.py tests/test_scan_sort.py
-              tests/test_render.py tests/test_adam.py tests/test_device_losses.py tests/test_wavelet.py
-              tests/test_wavelet_loss.py tests/test_util_ops.py tests/test_runtime.py tests/test_select.py
-              tests/test_between_kernels.py)
+KERNEL_TESTS=(tests/kernels/test_project4d.py tests/kernels/test_rasterize.py tests/kernels/test_binning.py
+              tests/kernels/test_scan_sort.py tests/kernels/test_render.py tests/kernels/test_adam.py
+              tests/kernels/test_device_losses.py tests/kernels/test_wavelet.py tests/kernels/test_wavelet_loss.py
+              tests/kernels/test_util_ops.py tests/host/test_runtime.py tests/kernels/test_select.py
+              tests/kernels/test_between_kernels.py)
 section "4a. Kernel tests on the selected device"
 ( cd "$ROOT" && run "$PY" -m pytest -q -ra -p no:cacheprovider "${KERNEL_TESTS[@]}" ) || FAILED+=("kernel tests")
 section "4b. Peaks (benchmarks/peak_probe.py)"
