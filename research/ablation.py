@@ -6,8 +6,7 @@ without the steps between training frames (no_between: between_prob 0), with the
 steps kept at their share until the end instead of fading to half of it after densify_until
 (no_between_fade), without
 the late learning-rate decay (no_lr_anneal; both schedules start at densify_until: with fewer
---iterations than that, give --set densify_until=N below it), with the in-between target's
-warps sampled bilinearly instead of bicubically (bilinear_between), with the in-between target
+--iterations than that, give --set densify_until=N below it), with the in-between target
 fused from three flow estimators (fused_between: between_flows = dis_fine,farneback), with the
 in-between target's pixels moving on straight paths instead of curved ones (straight_between:
 between_path = linear), on one scene, for each seed;
@@ -35,7 +34,6 @@ VARIANTS = {"full": {}, "no_flow": {"use_flow": "false"}, "no_wavelet": {"use_wa
             "no_depth": {"use_depth": "false"}, "no_between": {"between_prob": "0"},
             "plain_adam": {"adam_skip_culled": "false"},
             "no_between_fade": {"between_anneal_final": "1"}, "no_lr_anneal": {"lr_anneal_final": "1"},
-            "bilinear_between": {"between_sampler": "linear"},
             "fused_between": {"between_flows": "dis_fine,farneback"},
             "straight_between": {"between_path": "linear"}}
 

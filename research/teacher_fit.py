@@ -64,12 +64,11 @@ def main(argv=None) -> int:
         fwd = (draw(f0.camera, float(f0.time), t)["flow"], draw(f1.camera, float(f1.time), t)["flow"])
         order = [c.flow_method] + [m for m in between_flow_methods(c) if m != c.flow_method]
         bend = (bend_around(sc, [flows[m] for m in order], order, lambda a, b, m: est(sc.frames[a].image, sc.frames[b].image, m),
-                            c.between_flow_splat and c.between_push == "fused")
+                            c.between_flow_splat)
                 if c.between_path == "quadratic" else None)
-        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, c.between_sampler,
-                                        [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
-                                        fwd if c.between_model_splat else None, c.between_flow_splat,
-                                        c.between_splat, c.between_push, bend=bend)[0], 0, 1)
+        target = np.clip(between_target(sc, flows[c.flow_method], 0.5, [flows[m] for m in order[1:]], disp,
+                                        c.between_model, c.between_fuse, fwd if c.between_model_splat else None,
+                                        c.between_flow_splat, bend=bend)[0], 0, 1)
         m, m0, m1 = (draw(x.camera, x.time)["image"] for x in (f, f0, f1))
         cross = 0.5 * (m0 + m1)
         row = [psnr(m, f.image), psnr(target, f.image), psnr(m, target), psnr(cross, f.image), psnr(m, cross),

@@ -62,13 +62,11 @@ def main(argv=None) -> int:
         bend = None
         if pair is not None and pair.dst == i1 and run.cfg.between_path == "quadratic":
             ordered = usable_pairs(sc, pairs)
-            fused = run.cfg.between_flow_splat and run.cfg.between_push == "fused"
+            fused = run.cfg.between_flow_splat
             bend = pair_bend(sc, ordered, ordered.index(pair), sources,
                              (lambda i: consistent_flows(sources(ordered[i]))) if fused else None)
-        target = (between_target(sc, pair, s, run.cfg.between_sampler,
-                                 extra_pairs(others, pair), fuse=run.cfg.between_fuse,
-                                 flow_splat=run.cfg.between_flow_splat, splat=run.cfg.between_splat,
-                                 push=run.cfg.between_push, bend=bend)[0]
+        target = (between_target(sc, pair, s, extra_pairs(others, pair), fuse=run.cfg.between_fuse,
+                                 flow_splat=run.cfg.between_flow_splat, bend=bend)[0]
                   if pair is not None and pair.dst == i1 else None)
         r = [psnr(model, f.image), psnr(dis, f.image),
              np.nan if target is None else psnr(target, f.image),

@@ -14,9 +14,8 @@ sets of frames and scored against the real frame (PSNR, dB):
   The triplets are a check that uses no test frame.
 
 Each variant changes in-between keys of the run's config (between_fuse, between_flow_splat,
-between_splat, between_push, between_model, between_model_splat, between_sampler, between_flows,
-between_path: with "quadratic" the flows to the nearest training frames beyond the pair
-are estimated here too); the model itself is the run's.  Prints the model's own render too.
+between_model, between_model_splat, between_flows, between_path: with "quadratic" the flows to the
+nearest training frames beyond the pair are estimated here too); the model itself is the run's.  Prints the model's own render too.
 """
 from __future__ import annotations
 
@@ -27,8 +26,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-KEYS = ("between_fuse", "between_flow_splat", "between_splat", "between_push", "between_model", "between_model_splat",
-        "between_sampler", "between_flows", "between_path")
+KEYS = ("between_fuse", "between_flow_splat", "between_model", "between_model_splat", "between_flows", "between_path")
 
 
 def main(argv=None) -> int:
@@ -92,12 +90,11 @@ def main(argv=None) -> int:
             for name, c in variants.items():
                 order = [c.flow_method] + between_flow_methods(c)
                 bend = (bend_around(sc, [flows[m] for m in order], order, estimated,
-                                    c.between_flow_splat and c.between_push == "fused")
+                                    c.between_flow_splat)
                         if c.between_path == "quadratic" else None)
-                image = between_target(sc, flows[c.flow_method], 0.5, c.between_sampler,
-                                       [flows[m] for m in order[1:]], disp, c.between_model, c.between_fuse,
-                                       fwd if c.between_model_splat else None, c.between_flow_splat,
-                                       c.between_splat, c.between_push, bend=bend)[0]
+                image = between_target(sc, flows[c.flow_method], 0.5, [flows[m] for m in order[1:]], disp,
+                                       c.between_model, c.between_fuse, fwd if c.between_model_splat else None,
+                                       c.between_flow_splat, bend=bend)[0]
                 scores[name].append(psnr(np.clip(image, 0, 1), f.image))
         print(f"{set_name} ({len(frames)} frames: {' '.join(map(str, frames))})")
         for name, v in scores.items():

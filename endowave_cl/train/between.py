@@ -9,8 +9,8 @@ time fraction s between them can be predicted, as a flow interpolator does:
     W0(p) = I_k(p - s F_kk'(p)),  W1(p) = I_k'(p - (1 - s) F_k'k(p)),  target = (1 - s) W0 + s W1
 
 (the DIS baseline's warp, ``baselines.dis_interpolations``; the frames are sampled between
-pixels as ``between_sampler`` says: bicubically by default, since bilinear sampling at the
-half-pixel offsets of a midway warp averages neighbouring pixels and teaches a blurred frame).
+pixels bicubically, SAMPLER: bilinear sampling at the half-pixel offsets of a midway warp averages
+neighbouring pixels and teaches a blurred frame, research/QUALITY.md finding 10).
 Every pixel is supervised, also where the flow failed its forward-backward check: there the target degrades towards a blend of
 the two frames, which still bounds what the model may show in between (supervising only the
 trusted pixels measured 0.25 dB lower on the pulling frames, research/QUALITY.md).  With tool masks,
@@ -39,28 +39,26 @@ frames than either alone (research/QUALITY.md finding 19).
 
 With ``between_model_splat`` the model's prediction pushes the frames forward instead: two more
 renders give the motion the model shows at each frame's own time, g0 from t_k to s and g1 from
-t_k' to s, and every pixel of I_k (I_k') is splatted to p + g0(p) (p + g1(p)) with bilinear
-weights (baselines.splat_forward); the two splats are blended with weights (1 - s) and s and
-normalised, and the pixels that neither frame reaches keep the backward prediction above.  At its
-training frames the model is fitted closely, so its motion there is better than the motion it
-renders between them, and a forward splat leaves a pixel that one frame cannot see to the other
+t_k' to s, I_k (I_k') is pushed forward along g0 (g1) as below (reversed_splat_interpolation),
+and the pixels that neither frame reaches keep the backward prediction above.  At its training
+frames the model is fitted closely, so its motion there is better than the motion it renders
+between them, and a forward splat leaves a pixel that one frame cannot see to the other
 (research/QUALITY.md finding 20).
 
-How a forward splat makes its image (``between_splat``): sharing each pixel's colour bilinearly
-among the four pixels around where it lands averages neighbouring pixels at fractional offsets,
-the blur of a bilinear backward warp ("colour").  "reverse" splats the displacement instead: at
-every pixel q that the frame reaches, the splatted mean of the displacements of the pixels that
-land there says where q's colour comes from, and the frame is sampled there with
-``between_sampler`` (bicubic); the two frames are blended with weights (1 - s) and s times how
-densely each reaches q, so that what one frame cannot see comes from the other.  With
-``between_flow_splat`` every flow hypothesis is pushed forward the same way (s F_kk' from the
-first frame, (1 - s) F_k'k from the second) instead of sampled backward, its backward warps
-filling the pixels that neither frame reaches (research/QUALITY.md finding 21).  Pushing every
-estimator's frames costs a host splat per estimator and frame, and where the estimators agree it
-pushes the same thing three times: ``between_push = "fused"`` pushes the frames once, along the
-estimators' flows fused per pixel by how well each returns to its start (``consistent_flows``:
-forward-backward error), which is as good a teacher on the pulling frames at a third of the splats
-(research/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per pair.
+How a forward splat makes its image: the displacement is splatted, not the colour (sharing each
+pixel's colour bilinearly among the four pixels around where it lands would average neighbouring
+pixels at fractional offsets, the blur of a bilinear backward warp).  At every pixel q that the
+frame reaches, the splatted mean of the displacements of the pixels that land there says where q's
+colour comes from, and the frame is sampled there bicubically (reversed_splat); the two frames are
+blended with weights (1 - s) and s times how densely each reaches q, so that what one frame cannot
+see comes from the other (research/QUALITY.md finding 21).  With ``between_flow_splat`` the flows
+push the frames forward the same way (s F_kk' from the first frame, (1 - s) F_k'k from the second)
+instead of sampling them backward, the fused backward prediction filling the pixels that neither
+frame reaches.  The frames are pushed once, along the estimators' flows fused per pixel by how well
+each returns to its start (``consistent_flows``: forward-backward error), which is as good a
+teacher on the pulling frames as pushing every estimator's frames, at a third of the splats
+(research/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per
+pair.
 
 Curved paths (``between_path = "quadratic"``): the flows above move every pixel at constant
 velocity between the pair's frames.  Tissue that is pulled speeds up and slows down, and the
@@ -85,10 +83,13 @@ import numpy as np
 from .. import env
 from ..warp import sample_displaced, splat_forward
 # the in-between modes' names are settings' values, listed in config.py (read from here too)
-from .config import (FUSE_MODES, PATHS, PUSH_MODES, S_DISTRIBUTIONS, SPLAT_MODES,  # noqa: F401
-                     between_flow_methods)
+from .config import FUSE_MODES, PATHS, S_DISTRIBUTIONS, between_flow_methods  # noqa: F401
 
 
+# how the frames are sampled between pixels (warp.SAMPLERS), in every warp and push of the target:
+# bicubically (bilinear sampling averages neighbouring pixels at half-pixel offsets and teaches a
+# blurred frame, research/QUALITY.md finding 10; the tool masks are sampled bilinearly)
+SAMPLER = "cubic"
 # fused_interpolation: half-width (px) of the box over which a hypothesis's two warps are compared,
 # and the disagreement (sum of the three channels' absolute differences, images in [0, 1]) at which
 # a hypothesis's weight falls by a factor e against the best one's
@@ -105,8 +106,8 @@ TARGET_CACHE_BYTES = 2 << 30
 # same cores run both and OpenCV's remap outruns the kernels (benchmarks/bench_train_loop.py
 # --both-paths)
 ENV_BETWEEN_TARGET = "ENDOWAVE_BETWEEN_TARGET"
-# splat_interpolation: a target pixel with less splatted weight than this (of the one a pixel has
-# that is reached by one source pixel exactly) keeps the backward prediction
+# reversed_splat_interpolation: a target pixel with less splatted weight than this (of the one a
+# pixel has that is reached by one source pixel exactly) keeps the backward prediction
 SPLAT_MIN_WEIGHT = 0.05
 
 
@@ -133,8 +134,8 @@ class Bend:
     span: t_k' - t_k; before_span: t_before - t_k (< 0), after_span: t_after - t_k' (> 0).
     before[h] / after[h] [H, W, 2] or None: per flow source h (between_target's pair, then its
     extra), the displacement of frame k's pixels to the training frame before the pair and of
-    frame k''s pixels to the one after it; fused: the same of consistent_flows (between_push
-    "fused"), or (None, None).  None marks a side with no such frame: that side's path is straight."""
+    frame k''s pixels to the one after it; fused: the same of consistent_flows (between_flow_splat),
+    or (None, None).  None marks a side with no such frame: that side's path is straight."""
     span: float
     before_span: float
     after_span: float
@@ -209,14 +210,12 @@ def bend_around(scene, sources: Sequence[object], methods: Sequence[str], flows_
 
 def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
                         valid: Optional[Sequence[np.ndarray]] = None,
-                        mode: str = "agree",
-                        blends: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, np.ndarray]:
+                        mode: str = "agree") -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]) fused from K hypotheses of the frame at fraction s (module
     docstring).  warps: [(W0, W1)] per hypothesis, frame 0 and frame 1 warped to s ([H, W, 3]
     each); valid: [H, W] per hypothesis, 0 where it must not be used (tool masks); weight is 1
     where at least one hypothesis is valid.  mode (FUSE_MODES): "agree" weighs the hypotheses by
-    how well their two warps agree, "mean" gives the valid ones equal weights.  blends: each
-    hypothesis's image of the frame at s ([H, W, 3]); None: (1 - s) W0 + s W1."""
+    how well their two warps agree, "mean" gives the valid ones equal weights."""
     if mode == "mean":
         err = np.zeros((len(warps),) + warps[0][0].shape[:2], np.float32)              # [K, H, W]
     else:
@@ -233,8 +232,8 @@ def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float
     w = np.exp((err.min(0) - err) * np.float32(1.0 / FUSE_TAU))                         # [K, H, W]
     w /= w.sum(0)
     image = np.zeros(warps[0][0].shape, np.float32)
-    for k, (wk, (w0, w1)) in enumerate(zip(w, warps)):
-        blend = cv2.addWeighted(w0, 1.0 - s, w1, s, 0.0) if blends is None else blends[k]
+    for wk, (w0, w1) in zip(w, warps):
+        blend = cv2.addWeighted(w0, 1.0 - s, w1, s, 0.0)
         cv2.accumulateProduct(cv2.cvtColor(wk, cv2.COLOR_GRAY2RGB), blend, image)
     return image, any_ok.astype(np.float32)
 
@@ -255,44 +254,38 @@ def usable_pairs(scene, flows: Dict[int, object]) -> List[object]:
     return [p for k, p in sorted(flows.items()) if _same_camera(scene.frames[p.src].camera, scene.frames[p.dst].camera)]
 
 
-def between_target(scene, pair, s: float, sampler: str = "linear",
-                   extra: Sequence[object] = (), model_disp: Optional[np.ndarray] = None,
-                   model_weight: float = 0.0, fuse: str = "agree",
-                   model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                   flow_splat: bool = False, splat: str = "colour", push: str = "each",
+def between_target(scene, pair, s: float, extra: Sequence[object] = (),
+                   model_disp: Optional[np.ndarray] = None, model_weight: float = 0.0, fuse: str = "agree",
+                   model_fwd: Optional[Tuple[np.ndarray, np.ndarray]] = None, flow_splat: bool = False,
                    pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                    bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray, float]:
     """(image [H, W, 3], weight [H, W], time) of the frame at fraction s in (0, 1) between the pair's
-    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  sampler: how the frames are sampled between pixels
-    (warp.SAMPLERS); the masks are always sampled bilinearly.  extra: FlowPairs of the same
+    frames (module docstring); weight 1 where the target is supervised, 0 elsewhere.  The frames are
+    sampled bicubically (SAMPLER), the masks bilinearly.  extra: FlowPairs of the same
     two frames from other estimators, fused with the pair's own (fused_interpolation, as fuse
     says: FUSE_MODES).  model_disp
     [H, W, 2]: where each pixel of the model's render at s lies in the pair's first frame (its
     rendered flow to that time); the two frames warped along it (the second along the same motion
     scaled to its time) are blended into the target with model_weight.  model_fwd (g0, g1)
     [H, W, 2] each: where the model moves each pixel of the first and of the second frame by the
-    time at s; with it the model's prediction splats the frames forward along them, the backward
-    warps along model_disp filling what neither reaches.  flow_splat: every flow hypothesis pushes
-    its frames forward too (s F_kk' from the first frame, (1 - s) F_k'k from the second), its
-    backward warps filling the rest.  splat (SPLAT_MODES): how a forward splat makes its image,
-    "colour" (splat_interpolation) or "reverse" (reversed_splat_interpolation).  push (PUSH_MODES):
-    with flow_splat, "each" pushes every hypothesis's frames along its own flows, "fused" pushes
-    them once along consistent_flows of all the hypotheses (pushed_flows: those flows when they
-    were made already), the fused backward prediction filling the rest.  bend: the pair's Bend
-    (pair_bend): every flow moves the pixels along parabolas instead of straight lines."""
+    time at s; with it the model's prediction pushes the frames forward along them
+    (reversed_splat_interpolation), the backward warps along model_disp filling what neither
+    reaches.  flow_splat: the frames are pushed forward too, once, along consistent_flows of all the
+    hypotheses (s times the fused flow from the first frame, (1 - s) times the fused flow back from
+    the second; pushed_flows: those flows when they were made already), the fused backward
+    prediction filling the rest.  bend: the pair's Bend (pair_bend): every flow moves the pixels
+    along parabolas instead of straight lines."""
     f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    image, weight = _flow_prediction(f0, f1, pair, s, sampler, extra, fuse, flow_splat, splat,
-                                     push, pushed_flows, bend)
-    image, weight = blend_model_prediction(scene, pair, s, image, weight, sampler, model_disp, model_weight,
-                                           model_fwd, splat)
+    image, weight = _flow_prediction(f0, f1, pair, s, extra, fuse, flow_splat, pushed_flows, bend)
+    image, weight = blend_model_prediction(scene, pair, s, image, weight, model_disp, model_weight, model_fwd)
     return image, weight, pair_time(scene, pair, s)
 
 
-def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.ndarray, sampler: str,
+def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.ndarray,
                            model_disp: Optional[np.ndarray], model_weight: float,
-                           model_fwd: Optional[Tuple[np.ndarray, np.ndarray]], splat: str):
+                           model_fwd: Optional[Tuple[np.ndarray, np.ndarray]]):
     """(image, weight): the flow prediction (image, weight) at fraction s blended with the model's
-    own prediction as between_target describes (model_disp, model_weight, model_fwd, splat); the
+    own prediction as between_target describes (model_disp, model_weight, model_fwd); the
     flow prediction itself where model_disp is None or model_weight is 0."""
     if model_disp is None or not model_weight > 0.0:
         return image, weight
@@ -302,16 +295,15 @@ def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.
     # frame has no weight)
     d0 = np.asarray(model_disp, np.float32)
     d1 = d0 * np.float32(-(1.0 - s) / s) if s > 0.0 else np.zeros_like(d0)
-    w0, w1, ok = _warp_pair(f0, f1, d0, d1, sampler)
+    w0, w1, ok = _warp_pair(f0, f1, d0, d1)
     model = ((1.0 - s) * w0 + s * w1).astype(np.float32)                           # [H, W, 3]
     if model_fwd is not None:
-        model = _splat(splat, f0, f1, model_fwd[0], model_fwd[1], s, sampler, model, w0, w1)[0]
+        model = reversed_splat_interpolation(f0, f1, model_fwd[0], model_fwd[1], s, model)
     image = ((1.0 - model_weight) * image + model_weight * model).astype(np.float32)
     return image, weight * ok
 
 
-def _flow_prediction(f0, f1, pair, s: float, sampler: str, extra: Sequence[object], fuse: str,
-                     flow_splat: bool, splat: str, push: str = "each",
+def _flow_prediction(f0, f1, pair, s: float, extra: Sequence[object], fuse: str, flow_splat: bool,
                      pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                      bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]): between_target's flow half, the frame at s predicted from
@@ -325,41 +317,23 @@ def _flow_prediction(f0, f1, pair, s: float, sampler: str, extra: Sequence[objec
             d0, d1 = -g0, -g1
         else:
             d0, d1 = -s * p.flow, -(1.0 - s) * p.flow_bw
-        return _warp_pair(f0, f1, d0, d1, sampler)
+        return _warp_pair(f0, f1, d0, d1)
 
-    # the hypotheses' warps and splats are independent: numpy and OpenCV release the GIL in most of
-    # their array work, so the host pool's threads use the cores the device leaves idle meanwhile
+    # the hypotheses' warps are independent: numpy and OpenCV release the GIL in most of their array
+    # work, so the host pool's threads use the cores the device leaves idle meanwhile
     sources = (pair, *extra)
-    pool = _host_pool()
-    hyps = [(w0, w1, ok, ((1.0 - s) * w0 + s * w1).astype(np.float32)) for w0, w1, ok in pool.map(backward, enumerate(sources))]
-    if flow_splat and push == "fused":
-        if len(hyps) == 1:
-            image, weight = hyps[0][3], hyps[0][2]
-        else:
-            image, weight = fused_interpolation([(w0, w1) for w0, w1, _, _ in hyps], s,
-                                                [ok for _, _, ok, _ in hyps], fuse)
+    hyps = list(_host_pool().map(backward, enumerate(sources)))
+    if len(hyps) == 1:
+        w0, w1, weight = hyps[0]
+        image = ((1.0 - s) * w0 + s * w1).astype(np.float32)
+    else:
+        image, weight = fused_interpolation([(w0, w1) for w0, w1, _ in hyps], s, [ok for _, _, ok in hyps], fuse)
+    if flow_splat:
         flow, flow_bw = consistent_flows(sources) if pushed_flows is None else pushed_flows
         g0, g1 = (bend.paths(flow, flow_bw, s) if bend is not None
                   else (np.float32(s) * flow, np.float32(1.0 - s) * flow_bw))
-        image = _splat(splat, f0, f1, g0, g1, s, sampler, image, image, image)[0]
-        return image, weight
-    if flow_splat:
-        paths = [bend.paths(p.flow, p.flow_bw, s, h) if bend is not None
-                 else (s * np.asarray(p.flow, np.float32), (1.0 - s) * np.asarray(p.flow_bw, np.float32))
-                 for h, p in enumerate(sources)]
-        fwd = [(f0, g0) for g0, _ in paths]
-        bwd = [(f1, g1) for _, g1 in paths]
-        pushes = list(pool.map(_push(sampler), fwd + bwd)) if splat == "reverse" else [None] * (2 * len(sources))
-        for h, (w0, w1, ok, blend) in enumerate(hyps):
-            blend, w0, w1 = _splat(splat, f0, f1, fwd[h][1], bwd[h][1], s, sampler, blend, w0, w1,
-                                   pushed=(pushes[h], pushes[len(sources) + h]))
-            hyps[h] = (w0, w1, ok, blend)
-    warps = [(w0, w1) for w0, w1, _, _ in hyps]
-    valid = [ok for _, _, ok, _ in hyps]
-    blends = [b for _, _, _, b in hyps]
-    if len(warps) == 1:
-        return blends[0], valid[0]
-    return fused_interpolation(warps, s, valid, fuse, blends if flow_splat else None)
+        image = reversed_splat_interpolation(f0, f1, g0, g1, s, image)
+    return image, weight
 
 
 def consistent_flows(sources: Sequence[object]) -> Tuple[np.ndarray, np.ndarray]:
@@ -390,41 +364,14 @@ def _host_pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="between")
 
 
-def _splat(mode: str, f0, f1, g0, g1, s: float, sampler: str, fill, fill0, fill1, pushed=(None, None)):
-    """(image, W0, W1): the frame at s splatted forward as mode says (SPLAT_MODES); W0 and W1 the
-    two frames' own pushed images where they reach ("reverse"; fill0 and fill1 elsewhere), or
-    fill0 and fill1 unchanged ("colour", which makes no image per frame).  pushed: the two frames'
-    reversed_splat results when they were made already."""
-    if mode == "colour":
-        return splat_interpolation(f0, f1, g0, g1, s, fill), fill0, fill1
-    if pushed[0] is None or pushed[1] is None:
-        pushed = tuple(_host_pool().map(_push(sampler), ((f0, g0), (f1, g1))))
-    return reversed_splat_interpolation(f0, f1, g0, g1, s, sampler, fill, fill0, fill1, pushed)
-
-
-def _push(sampler: str):
+def _push(item):
     """(frame, g) -> reversed_splat of the frame's image along g, its tool pixels left out."""
-    return lambda item: reversed_splat(item[0].image, item[1], sampler, _source_weight(item[0]))
+    return reversed_splat(item[0].image, item[1], _source_weight(item[0]))
 
 
 def _source_weight(f) -> Optional[np.ndarray]:
     """[H, W] 1 on tissue, 0 on tool pixels (not splatted), or None without a mask."""
     return None if f.mask is None else (np.asarray(f.mask) > 0.5).astype(np.float32)
-
-
-def splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: np.ndarray) -> np.ndarray:
-    """[H, W, 3]: the frame at fraction s from frames f0 and f1 splatted forward along g0 and g1
-    ([H, W, 2]: each pixel's displacement from its frame to s; baselines.splat_forward), blended
-    as ((1 - s) num0 + s num1) / ((1 - s) den0 + s den1); fill where that weight is below
-    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not splatted.  The colours are shared bilinearly
-    among the four pixels around where they land, which at fractional offsets averages
-    neighbouring pixels (a low-pass, as a bilinear backward warp)."""
-    num, den = None, None
-    for f, g, a in ((f0, g0, 1.0 - s), (f1, g1, s)):
-        n, d = splat_forward(f.image, np.asarray(g, np.float32), _source_weight(f))
-        num = a * n if num is None else num + a * n
-        den = a * d if den is None else den + a * d
-    return _divide_where(num, den, fill)
 
 
 def _divide_where(num: np.ndarray, den: np.ndarray, fill: np.ndarray) -> np.ndarray:
@@ -438,50 +385,44 @@ def _divide_where(num: np.ndarray, den: np.ndarray, fill: np.ndarray) -> np.ndar
     return out
 
 
-def reversed_splat(image: np.ndarray, g: np.ndarray, sampler: str, source_weight=None):
+def reversed_splat(image: np.ndarray, g: np.ndarray, source_weight=None):
     """(pushed [H, W, C], reach [H, W]) of image [H, W, C] pushed forward along g ([H, W, 2]): the
     displacement itself is splatted forward (baselines.splat_forward) and normalised, which gives
     at every pixel q that a source pixel reaches where its colour comes from, q - g; the image is
-    sampled there with sampler (bicubic keeps the texture a bilinear colour splat averages away).
-    reach: the splatted weight (0 where nothing lands, and pushed is the image sampled at q)."""
+    sampled there bicubically (SAMPLER: it keeps the texture that a bilinear colour splat averages
+    away).  reach: the splatted weight (0 where nothing lands, and pushed is the image sampled at q)."""
     g = np.asarray(g, np.float32)
     num, den = splat_forward(-g, g, source_weight)                                    # [H, W, 2], [H, W]
     back = _divide_where(num, den, np.zeros_like(g))
-    return sample_displaced(image, back, sampler), den
+    return sample_displaced(image, back, SAMPLER), den
 
 
-def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, sampler: str,
-                                 fill: np.ndarray, fill0: np.ndarray, fill1: np.ndarray, pushed=None):
-    """(image, W0, W1) [H, W, 3] each: frames f0 and f1 pushed forward along g0 and g1 to fraction
-    s (reversed_splat), blended with weights (1 - s) reach0 and s reach1 (a pixel that one frame
-    reaches and the other does not, or reaches thinly, comes from the first); fill where that
-    weight is below SPLAT_MIN_WEIGHT.  W0 (W1): f0 (f1) pushed, fill0 (fill1) where it does not
-    reach.  Tool pixels (masks) are not pushed.  pushed: the two frames' reversed_splat results
-    ((image, reach) each) when they were made already."""
-    if pushed is None:
-        pushed = [_push(sampler)(item) for item in ((f0, g0), (f1, g1))]
+def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: np.ndarray) -> np.ndarray:
+    """[H, W, 3]: frames f0 and f1 pushed forward along g0 and g1 ([H, W, 2]: each pixel's
+    displacement from its frame to s) to fraction s (reversed_splat, the two on the host pool's
+    threads), blended with weights (1 - s) reach0 and s reach1 (a pixel that one frame reaches and
+    the other does not, or reaches thinly, comes from the first); fill where that weight is below
+    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not pushed."""
+    pushed = tuple(_host_pool().map(_push, ((f0, g0), (f1, g1))))
     image = np.zeros(fill.shape, np.float32)
     total = np.zeros(fill.shape[:2], np.float32)
-    out_pushed = []
-    for a, other, (w, reach) in ((1.0 - s, fill0, pushed[0]), (s, fill1, pushed[1])):
+    for a, (w, reach) in ((1.0 - s, pushed[0]), (s, pushed[1])):
         ok = (reach > SPLAT_MIN_WEIGHT).view(np.uint8)                                   # [H, W]
         wt = np.where(ok, np.float32(a) * reach, np.float32(0))                          # [H, W]
         image += cv2.merge((wt, wt, wt)) * w
         total += wt
-        o = np.array(other, np.float32, copy=True)
-        cv2.copyTo(np.asarray(w, np.float32), ok, o)
-        out_pushed.append(o)
-    return _divide_where(image, total, fill), out_pushed[0], out_pushed[1]
+    return _divide_where(image, total, fill)
 
 
-def _warp_pair(f0, f1, d0, d1, sampler: str):
-    """(W0, W1 [H, W, 3], ok [H, W]): frames f0 and f1 sampled at p + d0 and p + d1 ([H, W, 2]);
-    ok 1 where both warped tool masks (bilinear) show tissue, everywhere without masks."""
+def _warp_pair(f0, f1, d0, d1):
+    """(W0, W1 [H, W, 3], ok [H, W]): frames f0 and f1 sampled at p + d0 and p + d1 ([H, W, 2];
+    bicubic, SAMPLER); ok 1 where both warped tool masks (bilinear) show tissue, everywhere without
+    masks."""
     ok = np.ones(f0.image.shape[:2], np.float32)
     for f, d in ((f0, d0), (f1, d1)):
         if f.mask is not None:
             ok *= (sample_displaced(np.asarray(f.mask, np.float32), d) > 0.5).astype(np.float32)
-    return sample_displaced(f0.image, d0, sampler), sample_displaced(f1.image, d1, sampler), ok
+    return sample_displaced(f0.image, d0, SAMPLER), sample_displaced(f1.image, d1, SAMPLER), ok
 
 
 def level_fraction(s: float, levels: int) -> float:
@@ -515,8 +456,8 @@ class BetweenSampler:
     """Draws (camera, time, device targets) of in-between frames for the trainer: a training pair,
     then s in (0, 1) as s_distribution says (draw_fraction).  The pair is drawn uniformly.  extra_flows: {k: FlowPair} of further estimators for the same pairs, fused
     into every target as fuse says (between_target's extra and fuse).  model_splat: the model's
-    prediction splats the frames forward (between_target's model_fwd); flow_splat and splat: as
-    between_target's, and push: the fused flows (consistent_flows) are made once per pair.
+    prediction splats the frames forward (between_target's model_fwd); flow_splat: as
+    between_target's, the fused flows it pushes along (consistent_flows) made once per pair.
     motion_refresh > 0: the motion the model renders at a pair's two frames is
     rendered over the whole pair (G0 from the first frame to the second, G1 back) and kept for
     that many steps; the motion to s is s G0 and (1 - s) G1 (the means move linearly in time, so
@@ -524,19 +465,18 @@ class BetweenSampler:
     22).  0: both are rendered to s in every step that needs them.  path (PATHS): "quadratic" bends
     every flow's paths with the pair's Bend (pair_bend, made once per pair)."""
 
-    def __init__(self, rt, scene, flows: Dict[int, object], sampler: str = "linear",
-                 extra_flows: Sequence[Dict[int, object]] = (), fuse: str = "agree",
-                 model_splat: bool = False, flow_splat: bool = False, splat: str = "colour",
-                 motion_refresh: int = 0, push: str = "each", s_distribution: str = "uniform",
-                 path: str = "linear", levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES):
-        self.rt, self.scene, self.sampler, self.fuse = rt, scene, sampler, fuse
+    def __init__(self, rt, scene, flows: Dict[int, object], extra_flows: Sequence[Dict[int, object]] = (),
+                 fuse: str = "agree", model_splat: bool = False, flow_splat: bool = False,
+                 motion_refresh: int = 0, s_distribution: str = "uniform", path: str = "linear",
+                 levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES):
+        self.rt, self.scene, self.fuse = rt, scene, fuse
         self.levels = int(levels)
         # (pair index, grid point j) -> (image [H, W, 3] float16, weight [H, W] float16): the flow
         # prediction at s = j / levels, kept up to cache_bytes (levels >= 2 only)
         self._static: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]] = {}
         self._cache_left = int(cache_bytes)
         self.s_distribution = s_distribution
-        self.model_splat, self.flow_splat, self.splat, self.push = model_splat, flow_splat, splat, push
+        self.model_splat, self.flow_splat = model_splat, flow_splat
         self._pushed: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}   # pair index -> consistent_flows
         self.path = path
         self._bends: Dict[int, Optional[Bend]] = {}                      # pair index -> pair_bend
@@ -544,11 +484,10 @@ class BetweenSampler:
         self._motion: Dict[int, Tuple[int, np.ndarray, np.ndarray]] = {}   # pair index -> (step, G0, G1)
         self.pairs = usable_pairs(scene, flows)
         self.extra_flows = list(extra_flows)
-        # the target built on the device (train/between_device.py) where a device is given, its
-        # kernels cover the settings and ENV_BETWEEN_TARGET chooses it; else on the host
+        # the target built on the device (train/between_device.py) where a device is given and
+        # ENV_BETWEEN_TARGET chooses it; else on the host
         self.device = None
-        from .between_device import supported
-        if rt is not None and self.pairs and supported(flow_splat, push, splat) and targets_on_device(rt):
+        if rt is not None and self.pairs and targets_on_device(rt):
             self.device = self.device_target()
 
     def device_target(self):
@@ -602,8 +541,8 @@ class BetweenSampler:
         the pair's flow interpolation alone."""
         pair = self.pairs[index]
         image, weight = self.flow_prediction(index, s)
-        image, weight = blend_model_prediction(self.scene, pair, s, image, weight, self.sampler, model_disp,
-                                               model_weight, model_fwd, self.splat)
+        image, weight = blend_model_prediction(self.scene, pair, s, image, weight, model_disp, model_weight,
+                                               model_fwd)
         return image, weight, pair_time(self.scene, pair, s)
 
     def flow_prediction(self, index: int, s: float) -> Tuple[np.ndarray, np.ndarray]:
@@ -617,17 +556,16 @@ class BetweenSampler:
             image, weight = self._static[key]
             return image.astype(np.float32), weight.astype(np.float32)
         pair = self.pairs[index]
-        fused = self.flow_splat and self.push == "fused"
-        pushed = self._fused(index) if fused else None
+        pushed = self._fused(index) if self.flow_splat else None
         bend = None
         if self.path == "quadratic":
             if index not in self._bends:
                 self._bends[index] = pair_bend(self.scene, self.pairs, index, lambda p: [p, *self.extra(p)],
-                                               self._fused if fused else None)
+                                               self._fused if self.flow_splat else None)
             bend = self._bends[index]
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
-        image, weight = _flow_prediction(f0, f1, pair, s, self.sampler, self.extra(pair), self.fuse,
-                                         self.flow_splat, self.splat, self.push, pushed, bend)
+        image, weight = _flow_prediction(f0, f1, pair, s, self.extra(pair), self.fuse, self.flow_splat,
+                                         pushed, bend)
         if j and abs(j - s * self.levels) < 1e-6 and self._cache_left >= image.size * 2 + weight.size * 2:
             kept = (image.astype(np.float16), np.asarray(weight).astype(np.float16))
             self._static[key] = kept
@@ -639,9 +577,8 @@ class BetweenSampler:
     def from_config(cls, rt, scene, cfg, flows: Dict[int, object],
                     extra_flows: Sequence[Dict[int, object]] = ()) -> "BetweenSampler":
         """The sampler a TrainConfig's between_* keys describe."""
-        return cls(rt, scene, flows, cfg.between_sampler, extra_flows, cfg.between_fuse, cfg.between_model_splat,
-                   cfg.between_flow_splat, cfg.between_splat, cfg.between_motion_refresh, cfg.between_push,
-                   cfg.between_s, cfg.between_path, cfg.between_levels)
+        return cls(rt, scene, flows, extra_flows, cfg.between_fuse, cfg.between_model_splat, cfg.between_flow_splat,
+                   cfg.between_motion_refresh, cfg.between_s, cfg.between_path, cfg.between_levels)
 
     def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
         """consistent_flows of pair index's estimators, made once."""

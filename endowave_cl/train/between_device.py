@@ -12,12 +12,11 @@ the splats along the pair's kept motion, and the blend.
 With between_levels the fraction s is on the sampler's grid as on the host, and the target is built
 at every draw (the host keeps float16 copies per grid point instead, within 5e-4 of these).
 
-The host path (train/between.py between_target) is the reference: tests/test_between_kernels.py
-compares the two.  It builds the target where these kernels do not cover the settings
-(``supported``: between_push "each" or between_splat "colour", research settings), where no device
-is given (the Teacher), and where between.targets_on_device says so: by default on a CPU device,
-where the same cores would run the kernels and OpenCV's SIMD remap is the faster of the two
-(ENDOWAVE_BETWEEN_TARGET=device|host chooses; benchmarks/bench_train_loop.py --compare-host)."""
+The host path (train/between.py between_target) is the reference:
+tests/kernels/test_between_kernels.py compares the two.  It builds the target where no device is
+given (the Teacher), and where between.targets_on_device says so: by default on a CPU device, where
+the same cores would run the kernels and OpenCV's SIMD remap is the faster of the two
+(ENDOWAVE_BETWEEN_TARGET=device|host chooses; benchmarks/bench_train_loop.py --both-paths)."""
 from __future__ import annotations
 
 from typing import Dict, List, Optional, Tuple
@@ -26,11 +25,6 @@ import numpy as np
 
 from ..ops.between import (Frame, Path, between_fuse, between_mix, between_push, between_splat, between_warp,
                            check_int64_atomics, frame_on_device, stack)
-
-
-def supported(flow_splat: bool, push: str, splat: str) -> bool:
-    """Whether the device builds the target of these between_* settings (else the host does)."""
-    return not flow_splat or (push == "fused" and splat == "reverse")
 
 
 def motion_on_device(rt, features, flow_channel: int):
@@ -58,7 +52,7 @@ class DeviceTarget:
         self._flows: Dict[int, object] = {}            # id(host array) -> device copy (kept with the host array)
         self._keep: List[np.ndarray] = []
         b = sampler
-        self.fused = b.flow_splat and b.push == "fused"
+        self.fused = b.flow_splat
         self._pair_fused: Dict[int, Tuple[object, object]] = {}
         self._bends: Dict[int, object] = {}
         for index, pair in enumerate(b.pairs):       # everything that depends on the pair alone, once
@@ -125,7 +119,7 @@ class DeviceTarget:
         f0, f1 = self.frame(pair.src), self.frame(pair.dst)
         wa, wb = float(np.float32(1.0 - s)), float(np.float32(s))
         sources = [pair, *b.extra(pair)]
-        hyps = [between_warp(rt, f0, f1, *self._paths(index, p.flow, p.flow_bw, s, h), wa, wb, b.sampler)
+        hyps = [between_warp(rt, f0, f1, *self._paths(index, p.flow, p.flow_bw, s, h), wa, wb)
                 for h, p in enumerate(sources)]
         if len(hyps) == 1:
             image, _, weight = hyps[0]
@@ -142,7 +136,7 @@ class DeviceTarget:
         """The two frames pushed forward along g0 and g1 (reversed splats), fill where neither reaches."""
         acc0 = between_splat(self.rt, g0, f0)
         acc1 = between_splat(self.rt, g1, f1)
-        return between_push(self.rt, acc0, acc1, f0, f1, wa, wb, fill, self.min_weight, self.b.sampler)
+        return between_push(self.rt, acc0, acc1, f0, f1, wa, wb, fill, self.min_weight)
 
     def build(self, index: int, s: float, model_disp=None, model_weight: float = 0.0, model_fwd=None):
         """(image [H, W, 3], weight [H, W], count int32 [1]) device arrays: between_target of pair
@@ -158,7 +152,7 @@ class DeviceTarget:
         disp = self._motion(model_disp)
         # d0 = disp, d1 = disp -(1 - s) / s as blend_model_prediction forms them; a Path samples at p - g
         c = float(np.float32(-(1.0 - s) / s)) if s > 0.0 else 0.0
-        model, _, ok = between_warp(self.rt, f0, f1, Path(disp, -1.0), Path(disp, -c), wa, wb, self.b.sampler)
+        model, _, ok = between_warp(self.rt, f0, f1, Path(disp, -1.0), Path(disp, -c), wa, wb)
         if model_fwd is not None:
             g0, g1 = (Path(self._motion(g), 1.0 if c is None else float(c)) for g, c in model_fwd)
             model = self._push(f0, f1, g0, g1, wa, wb, model)

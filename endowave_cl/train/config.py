@@ -60,18 +60,12 @@ DENSIFY_GRAD_PIXELS = 320 * 256
 # The in-between modes (train/between.py implements them; validate_config checks the values)
 # how the hypotheses are combined (between_fuse): weighted by their warps' agreement, or averaged
 FUSE_MODES = ("agree", "mean")
-# how a forward splat makes its image (between_splat): the splatted displacement reversed and the
-# frame sampled along it, or the colours shared bilinearly
-SPLAT_MODES = ("reverse", "colour")
 # where in the pair an in-between step's time falls (between_s): "uniform" over (0, 1);
 # "triangular", the mean of two uniform draws (density 4 s up to 1/2, 4 (1 - s) above): twice the
 # uniform's share at the middle of the pair, furthest from both training frames, where the target
 # is least certain and only these steps supervise the model, and none at the frames themselves,
 # which their own steps supervise
 S_DISTRIBUTIONS = ("uniform", "triangular")
-# which flows between_flow_splat pushes forward (between_push): one flow per direction fused from
-# the estimators per pixel by forward-backward consistency, or every estimator's own
-PUSH_MODES = ("fused", "each")
 # how a pixel moves between a pair's frames (between_path): at constant velocity along the pair's
 # flow, or along the parabola through its positions in the pair's frames and the training frame
 # beyond the pair on its own side (Bend)
@@ -252,10 +246,6 @@ class BetweenSettings:
                                     # pair's flow prediction at a grid point is built once and kept
                                     # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
                                     # that later in-between steps cost little more than plain ones
-    sampler: str = "cubic"          # how the in-between target samples the two frames between
-                                    # pixels (warp.py SAMPLERS): "cubic" (bicubic) or "linear"
-                                    # (bilinear, which at half-pixel offsets averages two pixels
-                                    # and teaches a blurred frame; research/QUALITY.md finding 10)
     flows: str = "dis,farneback"          # further flow estimators (comma-separated,
                                     # data/flow.py METHODS) whose interpolations are fused with
                                     # flow_method's in the in-between target, per pixel by how well
@@ -265,11 +255,12 @@ class BetweenSettings:
     fuse: str = "agree"             # how between_flows' hypotheses are combined: "agree" weighs each
                                     # pixel's by how well its two warps agree, "mean" averages them
                                     # (research/QUALITY.md findings 20, 21)
-    flow_splat: bool = True          # the flows push the two frames forward (a forward splat, as
-                                    # between_splat says; which flows: between_push) instead of
-                                    # sampling them backward, the backward prediction filling the
-                                    # pixels that no source pixel reaches (research/QUALITY.md findings
-                                    # 21, 22)
+    flow_splat: bool = True          # the flows push the two frames forward (a reversed splat,
+                                    # once per direction along the estimators' flows fused by
+                                    # forward-backward consistency: train/between.py
+                                    # consistent_flows) instead of sampling them backward, the
+                                    # backward prediction filling the pixels that no source pixel
+                                    # reaches (research/QUALITY.md findings 21, 22)
     model: float = 0.5              # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
@@ -279,24 +270,14 @@ class BetweenSettings:
                                     # two frames forward along the motion the model renders at
                                     # their own times (two more renders per such step) instead of
                                     # sampling them along the motion it renders at s (train/
-                                    # between.py splat_interpolation; research/QUALITY.md finding 20)
-    push: str = "fused"             # which flows between_flow_splat pushes forward (train/between.py
-                                    # PUSH_MODES): "fused" one flow per direction, fused per pixel
-                                    # from the estimators by forward-backward consistency (two host
-                                    # splats); "each" every estimator's own (six; research/QUALITY.md
-                                    # finding 22)
+                                    # between.py reversed_splat_interpolation; research/QUALITY.md
+                                    # findings 20, 21)
     motion_refresh: int = 500          # with between_model_splat: the motion the model renders at
                                     # a pair's two frames is rendered over the whole pair, scaled to
                                     # each step's time and kept this many steps (two renders fewer
                                     # in most late in-between steps); 0: rendered to the step's time
                                     # in every such step (train/between.py BetweenSampler;
                                     # research/QUALITY.md finding 22)
-    splat: str = "reverse"          # how a forward splat makes its image (train/between.py
-                                    # SPLAT_MODES): "colour" shares the colours bilinearly among
-                                    # the four pixels where they land, which blurs at fractional
-                                    # offsets; "reverse" splats the displacement, reverses it and
-                                    # samples the frame along it with between_sampler (sharper
-                                    # targets; research/QUALITY.md finding 21)
 
 # The sections, in the order --list-settings shows them: {name: (class, the prefix its keys carry)}.
 # A flat key (--set KEY=VALUE, a TOML file, config.json) is the prefix and a section's field name:
@@ -467,28 +448,33 @@ def _coerce(name: str, value: Any, source: str, from_text: bool) -> Any:
     return kind(value)
 
 
-# Keys of earlier versions, removed with their code: each reproduced a finding that did not become
-# a default (research/README.md lists them).  {key: (the value that meant "off", the finding)}.
-# A saved run's config.json or checkpoint names them all: opening the run ignores them, with a note
-# where the run had one on; --set, a TOML file or a batch manifest that names one is refused.
+# Keys of earlier versions, removed with their code: each one's other values reproduced a finding
+# that did not become a default (research/README.md lists them).  {key: (the value this version
+# always behaves as: "off", or the mode that is the default, the finding)}.  A saved run's
+# config.json or checkpoint names them all: opening the run ignores them, with a note where the run
+# had another value; --set, a TOML file or a batch manifest that names one is refused.
 REMOVED = {
     "between_two_flow": (False, "finding 9"),
     "between_by_time": (False, "finding 16"),
     "flow_photo_max": (0.0, "finding 17"),
     "flow_anneal_final": (1.0, "finding 17"),
     "lambda_flow_gaussian": (0.0, "finding 5"),
+    "between_sampler": ("cubic", "finding 10"),
+    "between_splat": ("reverse", "finding 21"),
+    "between_push": ("fused", "finding 22"),
 }
 
 
 def removed_key_text(key: str) -> str:
     """Why a REMOVED key is no longer a setting, for messages."""
-    return (f"key '{key}' was removed in this version with its code (it served {REMOVED[key][1]} of "
-            f"research/QUALITY.md, which did not become a default)")
+    off, finding = REMOVED[key]
+    return (f"key '{key}' was removed in this version with its code (its values other than {off!r}, "
+            f"now the only behaviour, served {finding} of research/QUALITY.md and did not become defaults)")
 
 
 def drop_removed(values: Mapping[str, Any], source: str, note=None) -> Dict[str, Any]:
     """values without the REMOVED keys (a saved run's config); note(line) is told of each one whose
-    value was not its "off" value, since the run was trained with a behaviour this version lacks."""
+    value was not the one REMOVED gives, since the run was trained with a behaviour this version lacks."""
     out = {}
     for key, value in values.items():
         if key in REMOVED:
@@ -597,10 +583,8 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         raise EndowaveError(f"{source}: key 'between_levels' must be 0 (continuous) or at least 2 (a grid of "
                             f"fractions), got 1")
     from ..data.scene import SPLITS
-    from ..warp import SAMPLERS
-    for key, allowed in (("recipe", RECIPES), ("split", SPLITS), ("between_sampler", SAMPLERS),
-                         ("between_path", PATHS), ("between_s", S_DISTRIBUTIONS), ("between_fuse", FUSE_MODES),
-                         ("between_push", PUSH_MODES), ("between_splat", SPLAT_MODES)):
+    for key, allowed in (("recipe", RECIPES), ("split", SPLITS), ("between_path", PATHS),
+                         ("between_s", S_DISTRIBUTIONS), ("between_fuse", FUSE_MODES)):
         value = getattr(cfg, key)
         if value not in allowed:
             raise EndowaveError(f"{source}: key '{key}' must be one of {', '.join(allowed)}, got {value!r}")
@@ -771,10 +755,8 @@ def _values_text(name: str, default: Any) -> str:
         return "true | false"
     from ..data.flow import METHODS
     from ..data.scene import SPLITS
-    from ..warp import SAMPLERS
-    choices = {"recipe": tuple(RECIPES), "split": SPLITS, "between_sampler": tuple(SAMPLERS),
-               "between_path": PATHS, "between_s": S_DISTRIBUTIONS, "between_fuse": FUSE_MODES,
-               "between_push": PUSH_MODES, "between_splat": SPLAT_MODES, "flow_method": METHODS}
+    choices = {"recipe": tuple(RECIPES), "split": SPLITS, "between_path": PATHS,
+               "between_s": S_DISTRIBUTIONS, "between_fuse": FUSE_MODES, "flow_method": METHODS}
     if name in choices:
         return " | ".join(choices[name])
     if name == "between_flows":

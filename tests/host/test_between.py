@@ -18,9 +18,11 @@ def _textured(H=40, W=56, seed=0):
 
 
 def _shifted(tex, dx, dy, H, W):
+    """tex moved by (dx, dy), sampled bicubically as the in-between target samples (whole-pixel
+    shifts are exact)."""
     import cv2
     M = np.float32([[1, 0, -20 + dx], [0, 1, -20 + dy]])
-    return cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_LINEAR)
+    return cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_CUBIC)
 
 
 def _scene_and_pair(shift=(2.0, -1.0), H=40, W=56, mask=None):
@@ -49,7 +51,8 @@ def test_between_target_is_the_translated_frame():
     image, _, t = between_target(scene, pair, 0.25)
     assert t == pytest.approx(0.25)
     want = _shifted(tex, 0.5 * 2.0, 0.5 * -1.0, *image.shape[:2])
-    np.testing.assert_allclose(image[inner], want[inner], atol=2e-3)
+    frame = scene.frames[0].image                  # the target clips bicubic overshoot to the frames' range
+    np.testing.assert_allclose(image[inner], np.clip(want, frame.min(), frame.max())[inner], atol=2e-3)
 
 
 def test_between_target_supervises_tissue_only():
@@ -146,21 +149,18 @@ def test_sample_displaced_samplers():
 
 
 def test_between_target_sampler():
-    # the texture moves 1 px per frame: half-way both warps are whole pixels and both samplers give
-    # the middle frame; a quarter of the way (half a pixel) bicubic differs from bilinear; the
-    # supervised pixels are the same
+    # the texture moves 1 px per frame: half-way both warps are whole pixels and give the middle
+    # frame; a quarter of the way (half a pixel) the frames are sampled bicubically
+    from endowave_cl.baselines import sample_displaced
     from endowave_cl.train.between import between_target
     scene, pair, _ = _scene_and_pair(shift=(1.0, 0.0))
     inner = (slice(6, -6), slice(6, -6))
-    for s in (0.5, 0.25):
-        lin, w_lin, t = between_target(scene, pair, s)
-        cub, w_cub, t2 = between_target(scene, pair, s, sampler="cubic")
-        assert t2 == t
-        np.testing.assert_array_equal(w_cub, w_lin)
-        if s == 0.5:
-            np.testing.assert_allclose(cub[inner], scene.frames[1].image[inner], atol=1e-5)
-        else:
-            assert np.abs(cub - lin)[inner].max() > 1e-3
+    cub, _, _ = between_target(scene, pair, 0.5)
+    np.testing.assert_allclose(cub[inner], scene.frames[1].image[inner], atol=1e-5)
+    cub, _, _ = between_target(scene, pair, 0.25)
+    i0, i1 = scene.frames[0].image, scene.frames[2].image
+    want = 0.75 * sample_displaced(i0, -0.25 * pair.flow, "cubic") + 0.25 * sample_displaced(i1, -0.75 * pair.flow_bw, "cubic")
+    np.testing.assert_allclose(cub, want, atol=1e-6)
 
 
 def _fused_ref(warps, s, valid, radius, tau):
@@ -416,17 +416,17 @@ def test_reversed_splat_pushes_the_image_forward():
     H, W = 12, 15
     image = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
     half = np.broadcast_to(np.float32([0.5, -0.25]), (H, W, 2)).copy()
-    pushed, reach = reversed_splat(image, half, "cubic")
+    pushed, reach = reversed_splat(image, half)
     inner = (slice(1, -1), slice(1, -1))
     np.testing.assert_allclose(reach[inner], 1.0, atol=1e-6)
     np.testing.assert_allclose(pushed[inner], sample_displaced(image, -half, "cubic")[inner], atol=1e-5)
     step = np.broadcast_to(np.float32([2.0, 1.0]), (H, W, 2)).copy()
-    pushed, reach = reversed_splat(image, step, "linear")
+    pushed, reach = reversed_splat(image, step)
     np.testing.assert_allclose(pushed[1:, 2:], image[:-1, :-2], atol=1e-6)
     assert reach[0].max() == 0 and reach[:, :2].max() == 0
     tool = np.ones((H, W), np.float32)
     tool[:, :5] = 0.0
-    _, reach = reversed_splat(image, step, "linear", tool)
+    _, reach = reversed_splat(image, step, tool)
     assert reach[:, :7].max() == 0 and reach[1:, 8:].min() == pytest.approx(1.0)
 
 
@@ -444,29 +444,25 @@ def test_reversed_splat_interpolation_takes_what_one_frame_cannot_reach_from_the
     still = np.zeros((H, W, 2), np.float32)
     fill = np.full((H, W, 3), 7.0, np.float32)
     s = 0.25
-    image, w0, w1 = reversed_splat_interpolation(f0, f1, g0, still, s, "linear", fill, fill, fill)
+    image = reversed_splat_interpolation(f0, f1, g0, still, s, fill)
     np.testing.assert_allclose(image[:, :3], i1[:, :3], atol=1e-6)
-    np.testing.assert_allclose(w0[:, :3], 7.0)                        # frame 0 unreached: its fill
-    np.testing.assert_allclose(w0[:, 3:], i0[:, :-3], atol=1e-6)
     np.testing.assert_allclose(image[:, 3:], (1 - s) * i0[:, :-3] + s * i1[:, 3:], atol=1e-6)
     away = np.full((H, W, 2), 1e3, np.float32)
-    image, _, _ = reversed_splat_interpolation(f0, f1, away, away, s, "linear", fill, fill, fill)
+    image = reversed_splat_interpolation(f0, f1, away, away, s, fill)
     np.testing.assert_array_equal(image, fill)
 
 
 def test_between_target_pushes_the_flows_frames_forward():
-    """flow_splat: each flow hypothesis pushes the frames forward along the flow (exact for a
-    translation: the translated frame inside); with splat = "colour" too; the backward warps fill
-    where no pixel lands (the borders the motion uncovers)."""
+    """flow_splat: the flow pushes the frames forward (exact for a translation: the translated
+    frame inside); the backward warps fill where no pixel lands (the borders the motion uncovers)."""
     from endowave_cl.train.between import between_target
     scene, pair, tex = _scene_and_pair()
     inner = (slice(6, -6), slice(6, -6))
-    for splat in ("reverse", "colour"):
-        image, weight, t = between_target(scene, pair, 0.5, sampler="cubic", flow_splat=True, splat=splat)
-        assert t == pytest.approx(0.5) and weight.min() == 1.0
-        np.testing.assert_allclose(image[inner], scene.frames[1].image[inner], atol=2e-3)
-    backward = between_target(scene, pair, 0.25, sampler="cubic")[0]
-    pushed = between_target(scene, pair, 0.25, sampler="cubic", flow_splat=True, splat="reverse")[0]
+    image, weight, t = between_target(scene, pair, 0.5, flow_splat=True)
+    assert t == pytest.approx(0.5) and weight.min() == 1.0
+    np.testing.assert_allclose(image[inner], scene.frames[1].image[inner], atol=2e-3)
+    backward = between_target(scene, pair, 0.25)[0]
+    pushed = between_target(scene, pair, 0.25, flow_splat=True)[0]
     np.testing.assert_allclose(pushed[inner], backward[inner], atol=1e-5)   # a uniform motion reverses exactly
     assert not np.allclose(pushed, backward, atol=1e-4)                # the borders differ
 
@@ -496,8 +492,8 @@ def test_consistent_flows_takes_the_estimator_whose_flow_returns():
 
 
 def test_between_target_pushes_once_along_the_consistent_flow():
-    """push = "fused": the frames are pushed once, along the estimators' flows fused by consistency;
-    a wrong, inconsistent second estimator is outvoted where "each" would push along it too."""
+    """flow_splat: the frames are pushed once, along the estimators' flows fused by consistency; a
+    wrong, inconsistent second estimator is outvoted."""
     import dataclasses as dc
     from endowave_cl.train.between import between_target, consistent_flows
     scene, pair, tex = _scene_and_pair()
@@ -505,12 +501,10 @@ def test_between_target_pushes_once_along_the_consistent_flow():
     wrong = dc.replace(pair, flow=pair.flow + np.float32([3.0, 0.0]), flow_bw=np.zeros_like(pair.flow_bw))
     inner = (slice(8, -8), slice(8, -8))
     truth = scene.frames[1].image[inner]
-    kw = dict(sampler="cubic", extra=[wrong], flow_splat=True, splat="reverse", fuse="mean")
-    fused = between_target(scene, pair, 0.5, push="fused", **kw)[0]
-    each = between_target(scene, pair, 0.5, push="each", **kw)[0]
+    kw = dict(extra=[wrong], flow_splat=True, fuse="mean")
+    fused = between_target(scene, pair, 0.5, **kw)[0]
     np.testing.assert_allclose(fused[inner], truth, atol=3e-3)
-    assert np.abs(each[inner] - truth).mean() > 5 * np.abs(fused[inner] - truth).mean()
-    given = between_target(scene, pair, 0.5, push="fused", pushed_flows=consistent_flows([pair, wrong]), **kw)[0]
+    given = between_target(scene, pair, 0.5, pushed_flows=consistent_flows([pair, wrong]), **kw)[0]
     np.testing.assert_array_equal(given, fused)
 
 
@@ -616,9 +610,9 @@ def test_between_target_on_curved_paths_is_the_held_out_frame():
     bend = pair_bend(scene, pairs, 1, lambda p: [p], fused)
     truth = scene.frames[2].image
     inner = (slice(8, -8), slice(8, -8))
-    for kw in (dict(), dict(flow_splat=True, splat="reverse", push="fused")):
-        curved = between_target(scene, pairs[1], 0.5, sampler="cubic", bend=bend, **kw)[0]
-        straight = between_target(scene, pairs[1], 0.5, sampler="cubic", **kw)[0]
+    for kw in (dict(), dict(flow_splat=True)):
+        curved = between_target(scene, pairs[1], 0.5, bend=bend, **kw)[0]
+        straight = between_target(scene, pairs[1], 0.5, **kw)[0]
         err_curved = np.abs(curved[inner] - truth[inner]).mean()
         np.testing.assert_allclose(curved[inner], truth[inner], atol=2e-3)
         assert np.abs(straight[inner] - truth[inner]).mean() > 5 * err_curved

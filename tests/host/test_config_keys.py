@@ -42,8 +42,7 @@ def _trainer(scene, rt, tmp_path, **kw):
 def _target_kw(tr, **over):
     """between_target's keywords as the trainer's in-between keys set them, with over's changes."""
     c = tr.cfg
-    return {**dict(sampler=c.between_sampler, fuse=c.between_fuse, flow_splat=c.between_flow_splat,
-                   splat=c.between_splat, push=c.between_push), **over}
+    return {**dict(fuse=c.between_fuse, flow_splat=c.between_flow_splat), **over}
 
 
 # ------------------------------------------------------------------ the training loop, steps stubbed
@@ -688,7 +687,7 @@ def _between_path(scene, rt, tmp_path):
         _, _, dev = b.draw(np.random.default_rng(seed))
         bend = None
         if path == "quadratic":
-            fused = b._fused if tr.cfg.between_flow_splat and tr.cfg.between_push == "fused" else None
+            fused = b._fused if tr.cfg.between_flow_splat else None
             bend = pair_bend(scene, b.pairs, k, lambda p: [p, *b.extra(p)], fused)
             assert bend.before[0] is not None and bend.after[0] is not None
         want = between_target(scene, b.pairs[k], s, bend=bend, **_target_kw(tr))[0]
@@ -697,21 +696,6 @@ def _between_path(scene, rt, tmp_path):
     assert np.abs(images["linear"] - images["quadratic"]).max() > 1e-3
     with pytest.raises(EndowaveError, match="between_path"):
         validate_config(TrainConfig(between_path="cubic"), "config.json")
-
-
-def _between_sampler(scene, rt, tmp_path):
-    """between_sampler: the drawn in-between target samples the frames with that sampler."""
-    from endowave_cl.train.between import between_target
-    for sampler in ("linear", "cubic"):
-        tr = _trainer(scene, rt, tmp_path / sampler, iterations=0, between_prob=1.0, between_sampler=sampler)
-        _, _, dev = tr._between.draw(np.random.default_rng(3))
-        rng = np.random.default_rng(3)
-        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-        s = float(rng.uniform(0.0, 1.0))
-        other = "cubic" if sampler == "linear" else "linear"
-        want, not_want = (between_target(scene, pair, s, **_target_kw(tr, sampler=x))[0] for x in (sampler, other))
-        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
-        assert not np.allclose(dev.image.get(), not_want, atol=1e-4)
 
 
 def _between_flows(scene, rt, tmp_path):
@@ -767,8 +751,8 @@ def _between_fuse(scene, rt, tmp_path):
 
 
 def _between_flow_splat(scene, rt, tmp_path):
-    """between_flow_splat: the drawn in-between target pushes the frames forward along each flow
-    hypothesis (as between_splat says); off, it samples them backward."""
+    """between_flow_splat: the drawn in-between target pushes the frames forward along the flow
+    hypotheses' consistent flows; off, it samples them backward."""
     from endowave_cl.train.between import between_target
     for on in (True, False):
         tr = _trainer(scene, rt, tmp_path / f"fs{on}", iterations=0, between_prob=1.0, between_flow_splat=on)
@@ -779,48 +763,6 @@ def _between_flow_splat(scene, rt, tmp_path):
         want, other = (between_target(scene, pair, s, **_target_kw(tr, flow_splat=f))[0] for f in (on, not on))
         np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
         assert not np.allclose(dev.image.get(), other, atol=1e-4)
-
-
-def _between_splat(scene, rt, tmp_path):
-    """between_splat: how the forward splats of the drawn in-between target (the flows' and the
-    model's) make their images, "reverse" or "colour"; other names are refused by key."""
-    from endowave_cl.train.between import between_target
-    from endowave_cl.train.config import validate_config
-    for mode, other_mode in (("reverse", "colour"), ("colour", "reverse")):
-        tr = _trainer(scene, rt, tmp_path / mode, iterations=0, between_prob=1.0, densify_until=0,
-                      between_model=0.5, between_splat=mode, between_flow_splat=True)
-        got, pair, s, motion = _drawn_with_model_motion(tr, rt, 0.5)
-        f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-        t = (1 - s) * f0.time + s * f1.time
-        kw = dict(model_disp=motion(f0.camera, t, f0.time), model_weight=0.5,
-                  model_fwd=(motion(f0.camera, f0.time, t), motion(f1.camera, f1.time, t)))
-        want, other = (between_target(scene, pair, s, **kw, **_target_kw(tr, splat=m))[0] for m in (mode, other_mode))
-        np.testing.assert_allclose(got, want, atol=1e-6)
-        assert not np.allclose(got, other, atol=1e-4)
-    with pytest.raises(EndowaveError, match="between_splat"):
-        validate_config(TrainConfig(between_splat="nearest"), "cfg.toml")
-
-
-def _between_push(scene, rt, tmp_path):
-    """between_push: with between_flow_splat the drawn target pushes the frames once along the
-    estimators' flows fused by consistency ("fused") or along each estimator's own ("each");
-    other names are refused by key."""
-    from endowave_cl.train.between import between_target
-    from endowave_cl.train.config import validate_config
-    for mode, other_mode in (("fused", "each"), ("each", "fused")):
-        tr = _trainer(scene, rt, tmp_path / mode, iterations=0, between_prob=1.0, between_flow_splat=True,
-                      between_splat="reverse", between_push=mode, between_flows="farneback")
-        assert tr._between.extra_flows                       # more than one estimator to fuse
-        _, _, dev = tr._between.draw(np.random.default_rng(3))
-        rng = np.random.default_rng(3)
-        pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-        s = float(rng.uniform(0.0, 1.0))
-        want, other = (between_target(scene, pair, s, extra=tr._between.extra(pair), **_target_kw(tr, push=m))[0]
-                       for m in (mode, other_mode))
-        np.testing.assert_allclose(dev.image.get(), want, atol=1e-6)
-        assert not np.allclose(want, other, atol=1e-4)
-    with pytest.raises(EndowaveError, match="between_push"):
-        validate_config(TrainConfig(between_push="all"), "cfg.toml")
 
 
 def _drawn_with_model_motion(tr, rt, weight):
@@ -961,7 +903,6 @@ CHECKS = {
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
-    "between_sampler": _between_sampler,
     "between_s": _between_s,
     "between_path": _between_path,
     "between_levels": _between_levels,
@@ -970,9 +911,7 @@ CHECKS = {
     "between_fuse": _between_fuse,
     "between_model_splat": _between_model_splat,
     "between_flow_splat": _between_flow_splat,
-    "between_splat": _between_splat,
     "between_motion_refresh": _between_motion_refresh,
-    "between_push": _between_push,
     "lambda_wavelet": _loss_effect("lambda_wavelet", 3.0, _total_changes("wavelet", 2.0)),
     "use_depth": _loss_effect("use_depth", False, _dropped("depth")),
     "use_flow": _loss_effect("use_flow", False, _dropped("flow")),
@@ -1046,8 +985,12 @@ def test_removed_keys_are_refused_as_settings_and_ignored_in_saved_runs(scene, t
         load_config(str(toml))
     with pytest.raises(EndowaveError, match="key 'lambda_flow_gaussian' was removed"):
         TrainConfig.from_dict({"lambda_flow_gaussian": 0.0})
+    with pytest.raises(EndowaveError, match=r"^override: key 'between_push' was removed .*'fused', now the only "
+                                            r"behaviour.*finding 22"):
+        load_config(None, {"between_push": "fused"})
     for name, on in (("off", {k: off for k, (off, _) in REMOVED.items()}),
-                     ("on", {"between_by_time": True, "flow_photo_max": 0.03})):
+                     ("on", {"between_by_time": True, "flow_photo_max": 0.03, "between_splat": "colour",
+                             "between_sampler": "linear"})):
         d = tmp_path / name
         d.mkdir()
         cfg = TrainConfig(iterations=7)
@@ -1061,6 +1004,9 @@ def test_removed_keys_are_refused_as_settings_and_ignored_in_saved_runs(scene, t
         else:
             assert "between_by_time = True ignored: key 'between_by_time' was removed" in notes
             assert "flow_photo_max = 0.03 ignored" in notes and "flow_anneal_final" not in notes
+            assert "between_splat = 'colour' ignored: key 'between_splat' was removed" in notes
+            assert "finding 21" in notes and "between_sampler = 'linear' ignored" in notes
+            assert "between_push" not in notes
 
 
 def test_config_is_frozen_and_resolution_gives_a_new_one(scene, rt, tmp_path):

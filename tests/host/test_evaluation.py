@@ -264,9 +264,8 @@ def test_teacher_is_the_static_in_between_target(scene_dir):
     def sources(p):
         return [p, *extra_pairs(others, p)]
     bend = pair_bend(scene, pairs, index, sources, lambda i: consistent_flows(sources(pairs[i])))
-    want = between_target(scene, pair, 0.5, c.between_sampler, extra_pairs(others, pair),
-                          fuse=c.between_fuse, flow_splat=c.between_flow_splat, splat=c.between_splat,
-                          push=c.between_push, bend=bend)[0]
+    want = between_target(scene, pair, 0.5, extra_pairs(others, pair), fuse=c.between_fuse,
+                          flow_splat=c.between_flow_splat, bend=bend)[0]
     teacher = teacher_for(scene)
     got = teacher.image(0, 2, 0.5)
     np.testing.assert_array_equal(got, np.clip(want, 0, 1))

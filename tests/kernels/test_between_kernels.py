@@ -213,7 +213,7 @@ def _compare_targets(b, draws, seed):
 
 
 @pytest.mark.parametrize("settings", [{}, dict(between_path="linear", between_fuse="mean"),
-                                      dict(between_flow_splat=False, between_sampler="linear"),
+                                      dict(between_flow_splat=False),
                                       dict(between_flows="")])
 def test_device_target_matches_host_target(rt, tiny_scene, monkeypatch, settings):
     from endowave_cl.data.scene import load_scene
@@ -229,23 +229,14 @@ def test_device_target_matches_host_target_on_pulling(rt, pulling_scene, monkeyp
     _compare_targets(b, [(0, 0.41), (len(b.pairs) - 1, 0.77), (17, 0.05)], 1)
 
 
-def test_where_the_targets_are_built(rt, tiny_scene, monkeypatch):
-    """auto: on a GPU only; 'host' always on the host; the research settings the kernels do not
-    cover on the host; a bad value is the one-line EnvError."""
-    from endowave_cl.data.scene import load_scene
+def test_where_the_targets_are_built(rt, monkeypatch):
+    """auto: on a GPU only; 'host' always on the host; a bad value is the one-line EnvError."""
     from endowave_cl.env import EnvError
-    from endowave_cl.train.between import BetweenSampler, targets_on_device
-    scene = load_scene(tiny_scene)
+    from endowave_cl.train.between import targets_on_device
     monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "auto")
     assert targets_on_device(rt) == rt.is_gpu
     monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "host")
     assert not targets_on_device(rt)
-    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "device")
-    from endowave_cl.train.between import between_flows
-    from conftest import tiny_config
-    cfg = tiny_config(between_push="each")
-    flows, extra = between_flows(scene, cfg)
-    assert BetweenSampler.from_config(rt, scene, cfg, flows, extra).device is None
     monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "gpu")
     with pytest.raises(EnvError, match="ENDOWAVE_BETWEEN_TARGET"):
         targets_on_device(rt)
