@@ -1,8 +1,8 @@
 /* Sampling as OpenCV's remap does it, for the in-between target's kernels (between_warp.cl,
  * between_push.cl), of a frame stored as [H, W, 4] (RGB and its tool mask, aligned loads): border
- * replicated, bicubic (CUBIC defined; a = -0.75, OpenCV's coefficients in float) or bilinear, at
- * the float position (OpenCV 5's remap does not round it); and the paths g = ca A + cb B the
- * kernels read displacements from. */
+ * replicated, the colour bicubic (a = -0.75, OpenCV's coefficients in float; the target always
+ * samples so, train/between.py SAMPLER) and the mask bilinear, at the float position (OpenCV 5's
+ * remap does not round it); and the paths g = ca A + cb B the kernels read displacements from. */
 #ifndef BETWEEN_SAMPLE_H
 #define BETWEEN_SAMPLE_H
 
@@ -29,10 +29,9 @@ INLINE float2 cell(const float m, const int n) {
                        : (float2)(m > 0.0f ? (float)(n - 1) : 0.0f, 0.0f);
 }
 
-/* img [H, W, 4] (RGB and the tool mask) at (mx, my), border replicated: .xyz the colour, bicubic
- * with CUBIC, else bilinear; .w the mask, bilinear (its taps are the bicubic's inner four).  A
- * non-finite position gives NaN where remap's bilinear sampling does (the mask; the colour
- * without CUBIC). */
+/* img [H, W, 4] (RGB and the tool mask) at (mx, my), border replicated: .xyz the colour, bicubic;
+ * .w the mask, bilinear (its taps are the bicubic's inner four).  A non-finite position gives NaN
+ * where remap's bilinear sampling does (the mask). */
 INLINE float4 sample_rgbm(__global const float4 *img, const int W, const int H, const float mx, const float my) {
     const float2 cx_ = cell(mx, W), cy_ = cell(my, H);
     const int x0 = (int)cx_.x, y0 = (int)cy_.x;
@@ -43,7 +42,6 @@ INLINE float4 sample_rgbm(__global const float4 *img, const int W, const int H, 
     const float4 lin = (p11 * ((1.0f - fy) * (1.0f - fx)) + p12 * ((1.0f - fy) * fx))
                      + (p21 * (fy * (1.0f - fx)) + p22 * (fy * fx));
     const int finite = isfinite(mx) && isfinite(my);
-#ifdef CUBIC
     const float4 cx = cubic_coeffs(fx), cy = cubic_coeffs(fy);
     const int xa = clampi(x0 - 1, W - 1), xd = clampi(x0 + 2, W - 1);
     __global const float4 *r0 = img + W * clampi(y0 - 1, H - 1), *r3 = img + W * clampi(y0 + 2, H - 1);
@@ -52,9 +50,6 @@ INLINE float4 sample_rgbm(__global const float4 *img, const int W, const int H, 
     sum += (r2[xa] * (cy.z * cx.x) + p21 * (cy.z * cx.y)) + (p22 * (cy.z * cx.z) + r2[xd] * (cy.z * cx.w));
     sum += (r3[xa] * (cy.w * cx.x) + r3[xb] * (cy.w * cx.y)) + (r3[xc] * (cy.w * cx.z) + r3[xd] * (cy.w * cx.w));
     return (float4)(sum.xyz, finite ? lin.w : NAN);
-#else
-    return finite ? lin : (float4)(NAN);
-#endif
 }
 
 /* the path g = ca A (+ cb B) at pixel i */

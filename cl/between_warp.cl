@@ -4,16 +4,16 @@
  * Two frames img0, img1 [H, W, 4] (RGB and tool mask: ops/between.py frame_on_device) are sampled at p - g0(p) and p - g1(p), where each path
  * g [H, W, 2] is ca A + cb B (the second term only with nb = 1; A, B read with a per-pixel pitch
  * and a channel offset, so that a render's flow channels serve as they lie in its feature image).
- * As OpenCV's remap (which the host path calls): the border is replicated, the frames are sampled bicubically
- * (CUBIC defined; a = -0.75, the result clipped to [lo, hi], each frame's own range) or
- * bilinearly, the tool masks always bilinearly.
+ * As OpenCV's remap (which the host path calls): the border is replicated, the frames are sampled
+ * bicubically (a = -0.75, the result clipped to [lo, hi], each frame's own range), the tool masks
+ * bilinearly.
  *
  * Outputs per pixel: blend [H, W, 3] = wa W0 + wb W1 (wa = 1 - s and wb = s, rounded on the host); diff [H, W] = sum_c |W0 - W1|;
  * ok [H, W] = 1 where both warped masks exceed 0.5 (a frame without a mask counts as tissue).
  * No adjoint: the target is a constant of the loss. */
 #pragma OPENCL FP_CONTRACT OFF
 
-#include "between_sample.h"   /* remap's sampling: bicubic / bilinear, paths */
+#include "between_sample.h"   /* remap's sampling: bicubic colour, bilinear mask; paths */
 
 __kernel void between_warp(__global const float4 *img0, __global const float4 *img1,
                            const float lo0, const float hi0, const float lo1, const float hi1,
@@ -31,11 +31,8 @@ __kernel void between_warp(__global const float4 *img0, __global const float4 *i
     const float2 g1 = path_at(a1, pa1, oa1, ca1, b1, pb1, ob1, cb1, nb1, i);
     const float4 s0 = sample_rgbm(img0, W, H, (float)x + (-g0.x), (float)y + (-g0.y));
     const float4 s1 = sample_rgbm(img1, W, H, (float)x + (-g1.x), (float)y + (-g1.y));
-    float3 w0 = s0.xyz, w1 = s1.xyz;
-#ifdef CUBIC
-    w0 = clamp(w0, lo0, hi0);     /* the cubic kernel overshoots at edges */
-    w1 = clamp(w1, lo1, hi1);
-#endif
+    const float3 w0 = clamp(s0.xyz, lo0, hi0);     /* the cubic kernel overshoots at edges */
+    const float3 w1 = clamp(s1.xyz, lo1, hi1);
     const int good = (!has_mask0 || s0.w > 0.5f) && (!has_mask1 || s1.w > 0.5f);
     vstore3(w0 * wa + w1 * wb, i, blend);
     const float3 d = fabs(w0 - w1);

@@ -72,12 +72,6 @@ def frame_on_device(rt, image: np.ndarray, mask: Optional[np.ndarray] = None) ->
     return Frame(cla.to_device(rt.queue, packed), float(image.min()), float(image.max()), mask is not None)
 
 
-def _sampler_options(sampler: str):
-    if sampler not in ("linear", "cubic"):
-        raise ValueError(f"sampler must be linear or cubic, got {sampler!r}")
-    return ["-DCUBIC"] if sampler == "cubic" else []
-
-
 def _size(frame: Frame):
     h, w = (int(v) for v in frame.image.shape[:2])
     if frame.image.shape != (h, w, 4):
@@ -85,15 +79,15 @@ def _size(frame: Frame):
     return h, w
 
 
-def between_warp(rt, f0: Frame, f1: Frame, g0: Path, g1: Path, wa: float, wb: float, sampler: str = "cubic",
-                 out=None):
-    """(blend [H, W, 3], diff [H, W], ok [H, W]): f0 sampled at p - g0(p) and f1 at p - g1(p) (W0,
-    W1); blend = wa W0 + wb W1, diff = sum_c |W0 - W1|, ok = 1 where both warped masks show tissue
-    (cl/between_warp.cl).  out: (blend, diff, ok) arrays to write instead of new ones."""
+def between_warp(rt, f0: Frame, f1: Frame, g0: Path, g1: Path, wa: float, wb: float, out=None):
+    """(blend [H, W, 3], diff [H, W], ok [H, W]): f0 sampled at p - g0(p) and f1 at p - g1(p)
+    (bicubically, train/between.py SAMPLER: W0, W1); blend = wa W0 + wb W1, diff = sum_c |W0 - W1|,
+    ok = 1 where both warped masks show tissue (cl/between_warp.cl).  out: (blend, diff, ok) arrays
+    to write instead of new ones."""
     h, w = _size(f0)
     if out is None:
         out = (rt.empty((h, w, 3)), rt.empty((h, w)), rt.empty((h, w)))
-    k = rt.kernel("between_warp.cl", "between_warp", _sampler_options(sampler))
+    k = rt.kernel("between_warp.cl", "between_warp")
     rt.launch_1d(k, h * w, WORK_GROUP, f0.image.data, f1.image.data, np.float32(f0.lo), np.float32(f0.hi),
                  np.float32(f1.lo), np.float32(f1.hi), np.int32(f0.has_mask), np.int32(f1.has_mask),
                  *g0.args(rt), *g1.args(rt),
@@ -146,15 +140,14 @@ def between_splat(rt, g: Path, frame: Frame, acc=None):
     return acc
 
 
-def between_push(rt, acc0, acc1, f0: Frame, f1: Frame, wa: float, wb: float, fill, min_weight: float,
-                 sampler: str = "cubic"):
-    """[H, W, 3]: frames f0 and f1 pushed along the paths splatted into acc0 and acc1 (between_splat)
-    and blended with weights wa reach0 and wb reach1 where each reaches above min_weight; fill where
-    their sum does not (cl/between_push.cl, train/between.py reversed_splat_interpolation)."""
+def between_push(rt, acc0, acc1, f0: Frame, f1: Frame, wa: float, wb: float, fill, min_weight: float):
+    """[H, W, 3]: frames f0 and f1 pushed along the paths splatted into acc0 and acc1 (between_splat;
+    sampled bicubically) and blended with weights wa reach0 and wb reach1 where each reaches above
+    min_weight; fill where their sum does not (cl/between_push.cl, train/between.py
+    reversed_splat_interpolation)."""
     h, w = _size(f0)
     out = rt.empty((h, w, 3))
-    opts = _sampler_options(sampler) + [f"-DSPLAT_FRAC_BITS={SPLAT_FRAC_BITS}",
-                                        f"-DSPLAT_MIN_WEIGHT={f32_literal(min_weight)}"]
+    opts = [f"-DSPLAT_FRAC_BITS={SPLAT_FRAC_BITS}", f"-DSPLAT_MIN_WEIGHT={f32_literal(min_weight)}"]
     rt.launch_1d(rt.kernel("between_push.cl", "between_push", opts), h * w, WORK_GROUP, acc0.data, acc1.data,
                  f0.image.data, f1.image.data, np.float32(f0.lo), np.float32(f0.hi), np.float32(f1.lo),
                  np.float32(f1.hi), np.float32(wa), np.float32(wb), np.int32(w), np.int32(h), fill.data, out.data)
