@@ -4,6 +4,10 @@ Per pass: block histograms -> exclusive scan of the [digit, block] counts (ops/s
 stable scatter into the other ping-pong buffer.  Only ``ceil(num_bits / radix_bits)`` passes
 run, so keys must have no set bit at or above ``passes * radix_bits`` that should matter.
 The result equals numpy's ``argsort(kind='stable')`` order exactly.
+
+Two limits can stay on the device (``limits``, an int32 array the caller's kernels wrote, so that
+the host reads nothing): the number of keys (at most the buffers' length, which the launches are
+sized for) and the bits the keys can have set (the passes above them copy instead of sorting).
 """
 from __future__ import annotations
 
@@ -97,9 +101,15 @@ def sort_passes(num_bits: int, radix_bits: int) -> int:
 
 
 def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY_BITS,
-                     config: Optional[SortConfig] = None) -> Tuple[cla.Array, cla.Array]:
+                     config: Optional[SortConfig] = None, limits: Optional[cla.Array] = None,
+                     n_at: int = -1, bits_at: int = -1) -> Tuple[cla.Array, cla.Array]:
     """(keys_sorted [n] uint64, values_sorted [n] int32), stable by the low num_bits bits
-    (rounded up to whole digits).  The inputs are left unchanged."""
+    (rounded up to whole digits).  The inputs are left unchanged.
+
+    limits: int32 device array (or None) with, where n_at >= 0, limits[n_at] the count of keys to
+    sort (the first min(n, limits[n_at]); the outputs' tail is left undefined), and where
+    bits_at >= 0, limits[bits_at] the bits the keys can have set (at most num_bits; the passes at
+    or above it copy).  The launches and the pass count do not depend on them."""
     if keys.dtype != np.uint64 or values.dtype != np.int32:
         raise TypeError(f"radix_sort_pairs takes uint64 keys and int32 values, got {keys.dtype}, {values.dtype}")
     n = int(keys.size)
@@ -125,14 +135,16 @@ def radix_sort_pairs(rt, keys: cla.Array, values: cla.Array, num_bits: int = KEY
     k_scatter = rt.kernel("sort.cl", "radix_scatter", cfg.options())
     gsize = (n_blocks * cfg.wg,)
     lsize = (cfg.wg,)
+    given = limits is not None
+    lim = (rt.buf(limits), np.int32(n_at if given else -1), np.int32(bits_at if given else -1))  # cl/sort.cl limits
     src_k, src_v = keys, values
     for p in range(passes):
         shift = np.int32(p * cfg.radix_bits)
         dst_k, dst_v = bufs[p % 2]
         rt.launch(k_hist, gsize, lsize, src_k.data, np.int32(n), np.int32(items), shift,
-                  np.int32(n_blocks), hist.data)
+                  np.int32(n_blocks), hist.data, *lim)
         exclusive_scan_into(rt, hist, hist.size, offsets, offsets.size)
         rt.launch(k_scatter, gsize, lsize, src_k.data, src_v.data, np.int32(n), np.int32(items), shift,
-                  np.int32(n_blocks), offsets.data, dst_k.data, dst_v.data)
+                  np.int32(n_blocks), offsets.data, dst_k.data, dst_v.data, *lim)
         src_k, src_v = dst_k, dst_v
     return src_k, src_v

@@ -103,8 +103,9 @@ def test_radix_histogram_and_scatter_pass(rt, cfg):
     dk, dv = cla.to_device(q, keys), cla.to_device(q, vals)
     hist = cla.empty(q, radix * n_blocks, np.int32)
     k_hist = rt.kernel("sort.cl", "radix_histogram", cfg.options())
+    no_limits = (rt.dummy_buffer(), np.int32(-1), np.int32(-1))
     k_hist(q, (n_blocks * cfg.wg,), (cfg.wg,), dk.data, np.int32(n), np.int32(items),
-           np.int32(shift), np.int32(n_blocks), hist.data)
+           np.int32(shift), np.int32(n_blocks), hist.data, *no_limits)
     ref_hist = radix_histogram_ref(keys, shift, cfg.radix_bits, cfg.wg * items)
     np.testing.assert_array_equal(hist.get().reshape(radix, n_blocks), ref_hist)
 
@@ -112,7 +113,7 @@ def test_radix_histogram_and_scatter_pass(rt, cfg):
     ok, ov = cla.empty(q, n, np.uint64), cla.empty(q, n, np.int32)
     k_sc = rt.kernel("sort.cl", "radix_scatter", cfg.options())
     k_sc(q, (n_blocks * cfg.wg,), (cfg.wg,), dk.data, dv.data, np.int32(n), np.int32(items),
-         np.int32(shift), np.int32(n_blocks), offsets.data, ok.data, ov.data)
+         np.int32(shift), np.int32(n_blocks), offsets.data, ok.data, ov.data, *no_limits)
     ref_k, ref_v = radix_scatter_ref(keys, vals, shift, cfg.radix_bits)
     np.testing.assert_array_equal(ok.get(), ref_k)
     np.testing.assert_array_equal(ov.get(), ref_v)
@@ -246,3 +247,58 @@ def test_sort_tiny(rt, cfg):
     rng = np.random.default_rng(1)
     n = small(1000, 1000)
     _sort_and_check(rt, _keys(rng, n, n_tiles=20, n_depths=10), num_bits=37, config=cfg)
+
+
+# --- limits kept on the device (ops.sort.radix_sort_pairs limits) --------------------------------
+
+def _sort_with_limits(rt, keys, num_bits, config, count=None, bits=None):
+    """radix_sort_pairs with the key count and / or key bits in a device array; the first
+    min(n, count) sorted pairs against the reference of those keys, the inputs unchanged."""
+    q = rt.queue
+    n = len(keys)
+    vals = np.arange(n, dtype=np.int32)
+    lim = cla.to_device(q, np.array([-7, count if count is not None else -1, bits if bits is not None else -1],
+                                    np.int32))
+    dk, dv = cla.to_device(q, keys), cla.to_device(q, vals)
+    sk, sv = R.radix_sort_pairs(rt, dk, dv, num_bits, config, limits=lim, n_at=1 if count is not None else -1,
+                                bits_at=2 if bits is not None else -1)
+    m = n if count is None else max(0, min(n, count))
+    ref_k, ref_v = sort_pairs_ref(keys[:m], vals[:m])
+    np.testing.assert_array_equal(sv.get()[:m], ref_v)
+    np.testing.assert_array_equal(sk.get()[:m], ref_k)
+    np.testing.assert_array_equal(dk.get(), keys)
+    np.testing.assert_array_equal(dv.get(), vals)
+
+
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.CPU_CONFIG, R.GPU_SMALL_CONFIG])
+@pytest.mark.parametrize("count", [0, 1, 700, 1999, 2000, 5000])
+def test_sort_count_on_the_device(rt, cfg, count):
+    """Only the first count keys (clamped to the buffers' 2000) are sorted, the launches sized for
+    all of them."""
+    rng = np.random.default_rng(count)
+    _sort_with_limits(rt, _keys(rng, 2000, n_tiles=50, n_depths=30), 38, cfg, count=count)
+
+
+@pytest.mark.parametrize("cfg", TINY_CONFIGS + [R.CPU_CONFIG, R.GPU_SMALL_CONFIG])
+@pytest.mark.parametrize("bits", [0, 1, 5, 8, 13, 22, 32])
+def test_sort_key_bits_on_the_device(rt, cfg, bits):
+    """Keys below 2^bits sorted with 32 bits' passes: those at or above bits copy; the same order."""
+    rng = np.random.default_rng(bits + 100)
+    keys = rng.integers(0, 1 << bits, 1500, dtype=np.uint64) if bits else np.zeros(1500, np.uint64)
+    _sort_with_limits(rt, keys, 32, cfg, bits=bits)
+
+
+def test_sort_count_and_key_bits_together(rt):
+    rng = np.random.default_rng(7)
+    keys = rng.integers(0, 1 << 11, 3000, dtype=np.uint64)
+    _sort_with_limits(rt, keys, 24, TINY_CONFIGS[0], count=2222, bits=11)
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("cfg", [R.CPU_CONFIG, R.GPU_SMALL_CONFIG, TINY_CONFIGS[0], TINY_CONFIGS[3]])
+def test_sort_limits_tiny(rt, cfg):
+    rng = np.random.default_rng(2)
+    n = small(600, 300)
+    keys = rng.integers(0, 1 << 9, n, dtype=np.uint64)
+    _sort_with_limits(rt, keys, 32, cfg, count=n - 17, bits=9)
+    _sort_with_limits(rt, keys, 32, cfg, count=n + 5)
