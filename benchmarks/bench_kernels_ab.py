@@ -114,7 +114,7 @@ def main(argv=None):
     q.finish()
     print(f"device: {rt.describe()}")
     print(f"inputs: {scene_path.name} {cam.width}x{cam.height}, {len(params0['means'])} Gaussians, "
-          f"{int((p.radius.get() > 0).sum())} visible, {int(b.sorted_values.shape[0])} tile entries")
+          f"{int((p.radius.get() > 0).sum())} visible, {b.n_isect} tile entries")
     print(f"old kernels {sides['old'][0]}, new {sides['new'][0]}; {args.runs} runs each after 2, "
           f"alternating ABBA; ratios new / old, median over pairs")
 

@@ -213,12 +213,15 @@ __kernel void rasterize_bwd_entry_of(__global const int *sorted_values, /* [M] *
 /* Deterministic mode, second pass: one work-item per Gaussian g sums the per-entry terms the
  * backward pass stored for its entries (v_entry in sorted order), taken in g's binning order
  * offsets[g] .. offsets[g + 1] (its rect's tiles row-major, entry_of[u] the sorted entry of slot
- * u), and writes its gradients.  v_entry is zero where the backward pass had nothing for an entry. */
+ * u), and writes its gradients.  v_entry is zero where the backward pass had nothing for an entry.
+ * The arrays hold m_cap entries (the binning's capacity, ops/binning.py): slots at or past it exist
+ * only in a list that overflowed (it has no tile ranges, so nothing was stored) and are not read. */
 #define GATHER_AHEAD 32  /* slots between a prefetch and its use in rasterize_bwd_gather */
-__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] in sorted order */
-                                   __global const int *entry_of,     /* [M] sorted entry of each slot */
+__kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [m_cap, NV] in sorted order */
+                                   __global const int *entry_of,     /* [m_cap] sorted entry of each slot */
                                    __global const int *offsets,      /* [N + 1] */
                                    const int n,
+                                   const int m_cap,
                                    __global float *v_means2d,        /* [N, 2] */
                                    __global float *v_conic,          /* [N, 3] */
                                    __global float *v_opac,           /* [N] */
@@ -228,9 +231,9 @@ __kernel void rasterize_bwd_gather(__global const float *v_entry,   /* [M, NV] i
     if (g >= n) return;
     float sum[NV];
     for (int k = 0; k < NV; k++) sum[k] = 0.0f;
-    const int end = offsets[g + 1];
+    const int end = min(offsets[g + 1], m_cap);
 #if HAVE_PREFETCH
-    const int m_slots = offsets[n];
+    const int m_slots = min(offsets[n], m_cap);
 #endif
     for (int u = offsets[g]; u < end; u++) {
 #if HAVE_PREFETCH

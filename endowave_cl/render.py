@@ -35,6 +35,7 @@ class RenderOutput:
     raster: object              # ops.rasterize.RasterOut
     live: object = None         # ops.select.LiveRows when rendered with select=True, else None
     timings: Dict[str, float] = field(default_factory=dict)  # ms per stage when timed
+    v_means2d: object = None    # cla [N, 2]: render_backward's screen-space gradient (accumulate_stats)
 
     @property
     def sorted_values(self):    # cla int32 [M]
@@ -52,6 +53,11 @@ class RenderOutput:
     def n_isect(self) -> int:   # M, number of (tile, Gaussian) pairs
         return int(self.binned.n_isect)
 
+    @property
+    def overflowed(self) -> bool:
+        """The binning's pairs did not fit its buffers (render(check=False) only): not to be used."""
+        return self.binned.overflowed
+
     def host(self) -> Dict[str, np.ndarray]:
         """Download: image [H,W,3], depth [H,W], flow [H,W,2], alpha [H,W] as numpy arrays."""
         f = self.features.get()
@@ -68,12 +74,16 @@ def _tick(rt, timings, name, t0, timed):
 
 
 def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Optional[float] = None,
-           timed: bool = False, select: bool = False) -> RenderOutput:
+           timed: bool = False, select: bool = False, check: bool = True) -> RenderOutput:
     """Render the Gaussians at time ``t``; the flow channels hold the displacement to ``t_flow``.
     select: first gather the Gaussians that may be alive at t (ops/select.py; the same images)
     when they are at most SELECT_MAX_SHARE of them: the stage records (and render_backward's
     gradients) then have one row per selected Gaussian, out.live.rows naming them (out.live is
-    None when every row was rendered)."""
+    None when every row was rendered).
+    check: the binning waits for its pair count and re-emits the pairs where they overflowed its
+    buffers (ops/binning.py); check=False reads nothing, and the caller tests out.overflowed after
+    its own next wait on the device (the training step's read-back) and renders again where it is
+    true."""
     from .ops.binning import bin_projected
     from .ops.project import project4d
     from .ops.rasterize import rasterize_projected
@@ -91,7 +101,7 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
         t0 = _tick(rt, timings, "select", t0, timed)
     proj = project4d(rt, params, camera, t, t_flow, channels=CHANNELS)
     t0 = _tick(rt, timings, "project", t0, timed)
-    binned = bin_projected(rt, proj, camera.width, camera.height)
+    binned = bin_projected(rt, proj, camera.width, camera.height, check=check)
     t0 = _tick(rt, timings, "bin_sort", t0, timed)
     raster = rasterize_projected(rt, proj, binned, camera.width, camera.height)
     _tick(rt, timings, "rasterize", t0, timed)
@@ -122,7 +132,7 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     import pyopencl.array as cla
 
     from .ops.project import project4d_bwd
-    from .ops.rasterize import accumulate_densify_stats, rasterize_projected_bwd
+    from .ops.rasterize import rasterize_projected_bwd
 
     cam = out.camera
     if deterministic is None:
@@ -133,18 +143,30 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
         v_alpha = rt.cached(("render.zero_v_alpha", cam.height, cam.width),
                             lambda: cla.zeros(rt.queue, (cam.height, cam.width), np.float32))
     t0 = time.perf_counter()
-    rows = None
     if out.live is not None:
-        params, rows = out.live.params, out.live.rows
+        params = out.live.params
     p = out.proj
     v2d = rasterize_projected_bwd(rt, p, out.binned, out.raster, v_features, v_alpha, cam.width, cam.height,
                                   deterministic=bool(deterministic))
     t0 = _tick(rt, out.timings, "rasterize_bwd", t0, timed)
-    if densify_stats is not None and len(params["means"]):
-        accumulate_densify_stats(rt, v2d["v_means2d"], p.radius, cam.width, cam.height,
-                                 densify_stats["grad_accum"], densify_stats["count"], densify_stats["max_radius"],
-                                 rows=rows)
+    out.v_means2d = v2d["v_means2d"]
+    if densify_stats is not None:
+        accumulate_stats(rt, out, densify_stats)
     grads = project4d_bwd(rt, params, cam, out.t, out.t_flow, p, v2d["v_means2d"], v2d["v_conic"],
                           v2d["v_opac"], v2d["v_features"], sh_factors=sh_factors)
     _tick(rt, out.timings, "project_bwd", t0, timed)
     return grads
+
+
+def accumulate_stats(rt, out: RenderOutput, densify_stats: Dict[str, object]) -> None:
+    """The densification statistics of the render's adjoint (ops.rasterize.accumulate_densify_stats
+    of out.v_means2d, which render_backward left): render_backward(densify_stats=...) calls it, and
+    the training step calls it itself once it has seen that the render did not overflow."""
+    from .ops.rasterize import accumulate_densify_stats
+    if out.v_means2d is None:
+        raise ValueError("accumulate_stats: render_backward has not run on this render")
+    p, cam = out.proj, out.camera
+    if int(p.radius.shape[0]):
+        accumulate_densify_stats(rt, out.v_means2d, p.radius, cam.width, cam.height, densify_stats["grad_accum"],
+                                 densify_stats["count"], densify_stats["max_radius"],
+                                 rows=None if out.live is None else out.live.rows)

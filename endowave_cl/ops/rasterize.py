@@ -296,7 +296,7 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     from (ops.binning.bin_gaussians): then the gradients are bit-identical from run to run
     (per-entry terms stored in sorted order, summed per Gaussian in its binning (tile) order through
     the slot -> entry map rasterize_bwd_entry_of builds from rect and offsets; needs M * (7 + C)
-    words of scratch).
+    words of scratch, M the length of sorted_values: ops.binning's capacity, at least the pairs).
     choice: the variant to run, as in ``rasterize``.
     """
     import pyopencl.array as cla
@@ -363,8 +363,8 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
                      np.int32(tiles_x), rect.data, offsets.data, entry_of.data)
         kg = rt.kernel("rasterize_bwd.cl", "rasterize_bwd_gather", opts)
         wg = 64
-        rt.launch_1d(kg, N, wg, v_entry.data, entry_of.data, offsets.data, np.int32(N), grads["v_means2d"].data,
-                     grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
+        rt.launch_1d(kg, N, wg, v_entry.data, entry_of.data, offsets.data, np.int32(N), np.int32(M),
+                     grads["v_means2d"].data, grads["v_conic"].data, grads["v_opac"].data, grads["v_features"].data)
     return grads
 
 

@@ -13,8 +13,9 @@ random time between two training frames, against the frame their flow predicts t
 (train/between.py).
 
 Parameters, Adam moments, the rendered images and every frame's targets stay on the device; per
-step the host reads the binning's pair count and one small buffer of scalars (the loss sums and the
-gradients' NaN / Inf flag), and the parameters only when densifying, checkpointing or exporting.
+step the host reads select's count of the live rows and one small buffer of scalars (the loss sums
+and the gradients' NaN / Inf flag; the binning's pair count, copied without blocking, is checked
+after it), and the parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
@@ -205,9 +206,10 @@ class Trainer:
     def train_step(self, k: int) -> Dict[str, float]:
         """One optimisation step on training frame k.
 
-        Two blocking reads: the binning's pair count (it sizes the sort's buffers), and, before
-        Adam, one read-back of the step's scalars: the loss sums and the NaN / Inf flag of the
-        gradients.  The camera is uploaded once (project4d; project4d_bwd reuses its buffer)."""
+        Two blocking reads: select's count of the live rows, and, before Adam, one read-back of the
+        step's scalars: the loss sums and the NaN / Inf flag of the gradients, after which the
+        binning's pair count (copied without blocking) is checked (_step).  The camera is uploaded
+        once (project4d; project4d_bwd reuses its buffer)."""
         frame, tgt = self.scene.frames[k], self.targets[k]
         return self._step(frame.camera, frame.time, tgt.next_time, tgt.dev, f"frame {k}")
 
@@ -222,9 +224,15 @@ class Trainer:
         forward = {}
 
         def model_motion(camera, t: float, t_to: float) -> np.ndarray:
-            out = render(self.rt, self.params, camera, t, t_to, select=self.select_live)
+            out = render(self.rt, self.params, camera, t, t_to, select=self.select_live, check=False)
+            motion = self.rendered_motion(out)
+            # the pair count: on the host already where the motion was read back (host targets),
+            # waited for where it stays on the device; an overflowed render is rendered again
+            if out.overflowed:
+                out = render(self.rt, self.params, camera, t, t_to, select=self.select_live)
+                motion = self.rendered_motion(out)
             forward.setdefault("out", out)     # the first render is at the step's own time
-            return self.rendered_motion(out)
+            return motion
 
         use_model = self.cfg.between_model > 0 and self.step >= self.cfg.densify_until
         drawn = self._between.draw(self.rng, model_motion if use_model else None, self.cfg.between_model, self.step)
@@ -262,16 +270,25 @@ class Trainer:
 
     def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Dict[str, float]:
         """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam.
-        out: the step's forward when it was rendered already (train_step_between)."""
+        out: the step's forward when it was rendered already (train_step_between).
+        The render does not wait for its pair count: the read-back is the step's wait, and where
+        the pairs overflowed the binning's buffers (ops/binning.py) the step is done again from a
+        checked render before anything is changed (the densification statistics are accumulated
+        after the read-back for that)."""
         from ..ops.util import nonfinite_flag, read_back
+        from ..render import accumulate_stats
         if out is None:
-            out = render(self.rt, self.params, camera, t, t_next, select=self.select_live)   # forward
-        pending = self.losses_enqueue(out, dev)                                          # losses
-        grads = render_backward(self.rt, self.params, out, pending.v_features,           # adjoints
-                                densify_stats=self.stats,
-                                deterministic=True if self.cfg.deterministic else None,
-                                sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
-        host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
+            out = render(self.rt, self.params, camera, t, t_next, select=self.select_live, check=False)  # forward
+        while True:
+            pending = self.losses_enqueue(out, dev)                                      # losses
+            grads = render_backward(self.rt, self.params, out, pending.v_features,       # adjoints
+                                    deterministic=True if self.cfg.deterministic else None,
+                                    sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
+            host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
+            if not out.overflowed:     # the pair count came back before the read-back did: no wait
+                break
+            out = render(self.rt, self.params, camera, t, t_next, select=self.select_live)   # checked
+        accumulate_stats(self.rt, out, self.stats)
         total, parts = pending.finish(host)
         self._check_finite(total, bool(host["nonfinite"][0]), what)
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step),  # Adam (v_means -> means)

@@ -46,17 +46,22 @@ def _check_binning(rt, rect, depth, radius, tiles_touched, tiles_x, tiles_y):
     return ref_k
 
 
-def _check_chain(rt, rect, depth, radius, tiles_touched, width, height, config=None):
+def _check_chain(rt, rect, depth, radius, tiles_touched, width, height, config=None, capacity=None):
+    """bin_and_sort (checked: an overflow of capacity is emitted again) against the reference: the
+    first M of the C >= M slots, the ranges and offsets exactly."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    sv, ranges, m, offsets = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tiles_touched), width, height,
-                                            sort_config=config)
+    b = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tiles_touched), width, height, sort_config=config,
+                       capacity=capacity)
+    sv, ranges, m, offsets = b.sorted_values, b.tile_ranges, b.n_isect, b.offsets
     np.testing.assert_array_equal(offsets.get(), bin_offsets_ref(rect, radius))
     ref_k, ref_v = sort_pairs_ref(*bin_gaussians_ref(rect, depth, radius, tiles_x))
-    assert m == len(ref_k) and sv.shape == (m,) and sv.dtype == np.int32
+    assert not b.overflowed and b.pairs.capacity == sv.shape[0]
+    assert m == len(ref_k) and sv.shape[0] >= m and sv.dtype == np.int32
     assert ranges.shape == (n_tiles, 2) and ranges.dtype == np.int32
-    np.testing.assert_array_equal(sv.get(), ref_v)
+    np.testing.assert_array_equal(sv.get()[:m], ref_v)
     np.testing.assert_array_equal(ranges.get(), tile_ranges_ref(ref_k, n_tiles))
+    return b
 
 
 # --- binning ------------------------------------------------------------------------------------
@@ -142,9 +147,9 @@ def test_bin_and_sort_other_sort_configs(rt, cfg):
 
 def test_bin_and_sort_empty(rt):
     z = np.zeros(0, np.int32)
-    sv, ranges, m, _ = B.bin_and_sort(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 50, 40)
-    assert m == 0 and sv.shape == (0,)
-    np.testing.assert_array_equal(ranges.get(), np.zeros((4 * 3, 2), np.int32))
+    b = B.bin_and_sort(rt, *_dev(rt, np.zeros((0, 4), np.int32), np.zeros(0, np.float32), z, z), 50, 40)
+    assert b.n_isect == 0 and b.sorted_values.shape == (0,) and not b.overflowed
+    np.testing.assert_array_equal(b.tile_ranges.get(), np.zeros((4 * 3, 2), np.int32))
 
 
 def test_bin_and_sort_100k_gaussians(rt):
@@ -191,12 +196,130 @@ def test_bin_and_sort_depth_first_keeps_the_order(rt, depths):
     _check_chain(rt, rect, depth, radius, tt, 13 * 16 - 5, 9 * 16)
     d_rect, d_depth, d_radius, d_tt = _dev(rt, rect, depth, radius, tt)
     counts, dbounds = B._counts(rt, d_radius, d_tt, d_depth)
-    order, dbits = B.depth_order(rt, d_depth, counts, dbounds)
+    order, key_bits = B.depth_order(rt, d_depth, counts, dbounds)
     vis = radius > 0
     bits = depth.view(np.uint32).astype(np.int64)
-    assert dbits == int(bits[vis].max() - bits[vis].min()).bit_length()
+    assert int(key_bits.get()[0]) == int(bits[vis].max() - bits[vis].min()).bit_length()
     # the Gaussians with entries in (depth bits, id) order; the others may lie anywhere
     o = order.get()
     assert sorted(o.tolist()) == list(range(depth.size))
     o_vis = o[vis[o]]
     np.testing.assert_array_equal(o_vis, np.flatnonzero(vis)[np.argsort(bits[vis], kind="stable")])
+
+
+# --- what bin_and_sort keeps on the device: the depth bounds and the pair count ------------------
+
+def test_depth_bounds_stay_on_the_device(rt):
+    """bin_counts' (least, greatest) depth pattern of the Gaussians with entries, and depth_keys'
+    keys (pattern - least) and key bits read from them on the device; with no entries: (UINT_MAX, 0),
+    zero keys, zero bits."""
+    rng = np.random.default_rng(41)
+    rect, depth, radius, tt = _scene(rng, 500, 9, 7)
+    depth[radius == 0] = 1e30                   # the culled Gaussians do not widen the bounds
+    vis = radius > 0
+    bits = depth.view(np.uint32).astype(np.int64)
+    for case in ("some", "none"):
+        if case == "none":
+            radius[:] = 0
+            vis[:] = False
+        d_rect, d_depth, d_radius, d_tt = _dev(rt, rect, depth, radius, tt)
+        counts, dbounds = B._counts(rt, d_radius, d_tt, d_depth)
+        lo, hi = (int(bits[vis].min()), int(bits[vis].max())) if vis.any() else (0xFFFFFFFF, 0)
+        np.testing.assert_array_equal(dbounds.get(), np.array([lo, hi], np.uint32))
+        n = depth.size
+        keys, ids, key_bits = rt.empty(n, np.uint64), rt.empty(n, np.int32), rt.empty(1, np.int32)
+        rt.launch_1d(rt.kernel("bin.cl", "depth_keys"), n, B.LOCAL, d_depth.data, counts.data, np.int32(n),
+                     dbounds.data, keys.data, ids.data, key_bits.data)
+        want = np.where(vis, bits - (lo if vis.any() else 0), 0).astype(np.uint64)
+        np.testing.assert_array_equal(keys.get(), want)
+        np.testing.assert_array_equal(ids.get(), np.arange(n))
+        assert int(key_bits.get()[0]) == (int(hi - lo).bit_length() if vis.any() else 0)
+
+
+def test_pair_capacity_headroom_growth_and_shrink():
+    p = B.PairCapacity()
+    assert p.capacity is None
+    p.observe(0)
+    assert p.capacity == B.MIN_CAPACITY
+    p.observe(100_000)
+    assert p.capacity == int(np.ceil(100_000 * B.HEADROOM))
+    p.observe(70_000)                            # less, but not under half: kept
+    assert p.capacity == int(np.ceil(100_000 * B.HEADROOM))
+    p.observe(40_000)                            # needs under half: shrunk
+    assert p.capacity == int(np.ceil(40_000 * B.HEADROOM))
+
+
+@pytest.mark.parametrize("capacity", [1, 37, 400])
+def test_bin_and_sort_overflow_is_emitted_again(rt, capacity):
+    """A capacity below the pair count: the checked binning (the default) re-emits into buffers
+    sized from the count, with exactly the reference's result."""
+    rng = np.random.default_rng(capacity)
+    rect, depth, radius, tt = _scene(rng, 600, 11, 9, max_side=4)
+    b = _check_chain(rt, rect, depth, radius, tt, 11 * 16, 9 * 16, capacity=capacity)
+    assert b.n_isect > capacity and b.pairs.capacity >= b.n_isect
+
+
+def test_bin_and_sort_unchecked_overflow_is_flagged_and_empty(rt):
+    """check=False with a capacity below the pair count: nothing past the capacity is written, the
+    record says it overflowed (with the true count), and it has no tile ranges, so that a rasterizer
+    run on it reads only what exists; re-binning with room gives the reference."""
+    rng = np.random.default_rng(43)
+    rect, depth, radius, tt = _scene(rng, 400, 10, 6)
+    m = len(bin_gaussians_ref(rect, depth, radius, 10)[0])
+    b = B.bin_and_sort(rt, *_dev(rt, rect, depth, radius, tt), 160, 96, capacity=m - 1, check=False)
+    assert b.sorted_values.shape == (m - 1,) and b.overflowed and b.n_isect == m
+    np.testing.assert_array_equal(b.tile_ranges.get(), 0)
+    _check_chain(rt, rect, depth, radius, tt, 160, 96, capacity=m)          # exactly enough: no overflow
+
+
+def test_bin_and_sort_reads_the_count_only_on_a_grids_first_binning(rt, monkeypatch):
+    """The first binning on a tile grid reads M back to size its buffers; later ones read nothing
+    (the count is copied without blocking), and reading it after a wait does not wait."""
+    import pyopencl as cl
+    reads = []
+    plain = cl.enqueue_copy
+
+    def counted(queue, dest, src, **kw):
+        if isinstance(dest, np.ndarray) and kw.get("is_blocking", True):
+            reads.append(dest.nbytes)
+        return plain(queue, dest, src, **kw)
+    monkeypatch.setattr(cl, "enqueue_copy", counted)
+    rng = np.random.default_rng(44)
+    w, h = 16 * 23 - 3, 16 * 19 - 1             # a grid no other test bins
+    rect, depth, radius, tt = _scene(rng, 800, 23, 19)
+    dev = _dev(rt, rect, depth, radius, tt)
+    assert B.pair_capacity(rt, 23, 19).capacity is None
+    b1 = B.bin_and_sort(rt, *dev, w, h, check=False)
+    assert len(reads) == 1 and not b1.overflowed
+    b2 = B.bin_and_sort(rt, *dev, w, h, check=False)
+    assert len(reads) == 1
+    b2.tile_ranges.get()                        # a wait on the device
+    assert not b2.pairs.pending and b2.n_isect == b1.n_isect and len(reads) == 2
+    assert B.pair_capacity(rt, 23, 19).capacity == int(np.ceil(b1.n_isect * B.HEADROOM))
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("variant", ["scalar", "default"])
+def test_bin_and_sort_overflow_tiny(rt, variant):
+    """The overflow path under Oclgrind: an unchecked overflowed list (the bin, the sort and the
+    ranges past the capacity) and the rasterizer and its deterministic adjoint run on it read and
+    write only inside their buffers; the checked one re-emits to the reference."""
+    from endowave_cl.ops.rasterize import RasterChoice, rasterize, rasterize_bwd
+    rng = np.random.default_rng(45)
+    rect, depth, radius, tt = _scene(rng, small(40, 24), 5, 3, max_side=3)
+    _check_chain(rt, rect, depth, radius, tt, 80, 40, capacity=3)
+    d_rect, d_depth, d_radius, d_tt = _dev(rt, rect, depth, radius, tt)
+    b = B.bin_and_sort(rt, d_rect, d_depth, d_radius, d_tt, 80, 40, capacity=3, check=False)
+    assert b.overflowed
+    n, c = depth.size, 3
+    means2d = cla.to_device(rt.queue, rng.uniform(0, 40, (n, 2)).astype(np.float32))
+    conic = cla.to_device(rt.queue, np.tile(np.float32([0.05, 0.0, 0.05]), (n, 1)))
+    opac = cla.to_device(rt.queue, np.full(n, 0.5, np.float32))
+    feats = cla.to_device(rt.queue, rng.random((n, c)).astype(np.float32))
+    choice = RasterChoice("scalar") if variant == "scalar" else None   # default: the device's (vector on CPUs)
+    out = rasterize(rt, means2d, conic, opac, feats, b.sorted_values, b.tile_ranges, 80, 40, choice)
+    v_out = cla.to_device(rt.queue, rng.standard_normal((40, 80, c)).astype(np.float32))
+    v_alpha = cla.zeros(rt.queue, (40, 80), np.float32)
+    grads = rasterize_bwd(rt, means2d, conic, opac, feats, b.sorted_values, b.tile_ranges, 80, 40, out, v_out,
+                          v_alpha, deterministic=(d_rect, b.offsets), choice=choice)
+    assert np.all(out.alpha.get() == 0) and np.all(grads["v_opac"].get() == 0)

@@ -125,3 +125,37 @@ def test_deterministic_backward_is_bit_identical(rt):
     free = render_backward(rt, params, out, v, deterministic=False)
     for k, a in free.items():   # the atomic mode computes the same gradients up to rounding
         np.testing.assert_allclose(a.get(), runs[0][k], rtol=1e-4, atol=1e-5 * (np.abs(runs[0][k]).max() + 1e-12))
+
+
+def test_render_with_too_small_pair_buffers(rt):
+    """The binning's pair buffers sized below the pair count (ops/binning.py PairCapacity): a checked
+    render (the default) re-emits and gives the very bits of a render with room, forward and
+    deterministic adjoint; an unchecked one says it overflowed."""
+    import pyopencl.array as cla
+    from endowave_cl.layout import tile_grid
+    from endowave_cl.ops.binning import pair_capacity
+    w, h = 70, 37
+    g = _scene(150, 1, w, h)
+    cam = _camera(w, h)
+    params = upload(rt, g)
+    v = cla.to_device(rt.queue, np.random.default_rng(2).standard_normal((h, w, 6)).astype(np.float32))
+    policy = pair_capacity(rt, *tile_grid(w, h))
+
+    def run(check):
+        out = render(rt, params, cam, 0.5, 0.6, check=check)
+        if out.overflowed:
+            return out, None
+        return out, {"features": out.features.get(), **{k: a.get() for k, a in
+                     render_backward(rt, params, out, v, deterministic=True).items()}}
+    _, want = run(True)
+    m = render(rt, params, cam, 0.5).n_isect
+    assert m > 2
+    policy.capacity = 2
+    out, _ = run(False)
+    assert out.overflowed and out.n_isect == m
+    assert policy.capacity >= m                  # the count read back resized the grid's buffers
+    policy.capacity = 2
+    out, got = run(True)
+    assert not out.overflowed and out.binned.pairs.capacity >= m
+    for k in want:
+        assert np.array_equal(got[k], want[k]), k
