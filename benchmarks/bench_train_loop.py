@@ -6,7 +6,7 @@ Runs Trainer.schedule_step, the loop's own choice between a plain step and an in
 and prints per kind of step the median wall time, kernel time (OpenCL event profiling of the
 Runtime's launches, kernel_events.py), host time (wall minus kernels: on a CPU device the kernels
 and the host share the cores, so this is the time the device did not run a Runtime kernel), the
-Runtime's kernel launches and the blocking reads per step:
+Runtime's kernel launches, the blocking reads and the waits for a binning's pair count per step:
 
     plain           a step on a training frame
     between         an in-between step before densify_until (the static target: flows only)
@@ -61,13 +61,17 @@ def load() -> str:
 
 class ReadCounter:
     """Counts blocking device-to-host reads (pyopencl.enqueue_copy into a numpy array, which every
-    cla.Array.get and ops.util.read_back goes through) and host-to-device uploads while installed."""
+    cla.Array.get and ops.util.read_back goes through), host-to-device uploads, and waits: the
+    binning's pair counts (copied without blocking, ops.binning.PairCount) read while their copy had
+    not completed, i.e. where the host waited on the device for them, while installed."""
 
     def __init__(self):
         import numpy as np
         import pyopencl as cl
-        self.reads = self.uploads = 0
+        from endowave_cl.ops.binning import PairCount
+        self.reads = self.uploads = self.waits = 0
         plain = cl.enqueue_copy
+        plain_value = PairCount.value
 
         def counted(queue, dest, src, **kw):
             if isinstance(dest, np.ndarray) and kw.get("is_blocking", True):
@@ -75,12 +79,17 @@ class ReadCounter:
             elif isinstance(src, np.ndarray):
                 self.uploads += 1
             return plain(queue, dest, src, **kw)
+
+        def value(pairs):
+            self.waits += int(pairs.pending)
+            return plain_value(pairs)
         cl.enqueue_copy = counted
+        PairCount.value = value
 
 
 def time_window(tr, rt, events, counter, start: int, steps: int, warmup: int, rows):
     """Run warmup + steps schedule steps from step number start; append (kind, wall s, kernel s,
-    launches, reads, uploads) of each timed step to rows."""
+    launches, reads, uploads, waits) of each timed step to rows."""
     order = list(tr.scene.train_indices)
     tr.step = start
     for i in range(warmup + steps):
@@ -88,7 +97,7 @@ def time_window(tr, rt, events, counter, start: int, steps: int, warmup: int, ro
         motion_before = {k: v[0] for k, v in tr._between._motion.items()}
         rt.queue.finish()
         events.clear()
-        counter.reads = counter.uploads = 0
+        counter.reads = counter.uploads = counter.waits = 0
         t0 = time.perf_counter()
         kind, _ = tr.schedule_step(order)
         rt.queue.finish()
@@ -98,7 +107,7 @@ def time_window(tr, rt, events, counter, start: int, steps: int, warmup: int, ro
             kind = "between_late+motion" if fresh else "between_late"
         if i >= warmup:
             rows.append((kind, wall, sum(kernel_ms(events).values()) * 1e-3, len(events), counter.reads,
-                         counter.uploads))
+                         counter.uploads, counter.waits))
 
 
 def spread_motion(tr, at: int):
@@ -117,7 +126,7 @@ def spread_motion(tr, at: int):
 def report(rows, title: str):
     print(title)
     print(f"  {'kind':21s} {'steps':>5s} {'wall ms':>8s} {'kernel ms':>9s} {'host ms':>8s} {'launches':>8s} "
-          f"{'reads':>5s} {'uploads':>7s}")
+          f"{'reads':>5s} {'max':>3s} {'uploads':>7s} {'waits':>5s}")
     med = {}
     for kind in KINDS:
         r = [x for x in rows if x[0] == kind]
@@ -129,7 +138,8 @@ def report(rows, title: str):
         med[kind] = wall
         print(f"  {kind:21s} {len(r):5d} {wall:8.1f} {kern:9.1f} {host:8.1f} "
               f"{statistics.median(x[3] for x in r):8.0f} {statistics.median(x[4] for x in r):5.0f} "
-              f"{statistics.median(x[5] for x in r):7.0f}")
+              f"{max(x[4] for x in r):3d} {statistics.median(x[5] for x in r):7.0f} "
+              f"{statistics.median(x[6] for x in r):5.0f}")
     if "plain" in med:
         print("  ratio to a plain step: " + ", ".join(f"{k} {v / med['plain']:.2f}x" for k, v in med.items()
                                                       if k != "plain"))
@@ -231,7 +241,8 @@ def main(argv=None):
                 time_window(tr, rt, events, counter, late, args.steps, args.warmup, rows[name])
         for name, r in rows.items():
             report(r, f"in-between targets built on the {name}: median per step (kernel: Runtime launches' "
-                      f"events; host: wall - kernel; reads: blocking device-to-host reads; load average after: "
+                      f"events; host: wall - kernel; reads: blocking device-to-host reads, max: the most in one "
+                      f"step; waits: pair counts the host waited for; load average after: "
                       f"{load()})")
     if args.full_run:
         full_run(scene_path, args.downscale, args.set)
