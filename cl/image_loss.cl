@@ -91,6 +91,9 @@ inline float sign_of(float d) {
  * g_ssim [npix, NGRAD] = dL/d(blurred mu_x, E[xx], E[xy]) per colour.
  * w_l1 = lambda_rgb (1 - lambda_dssim) / n_rgb, w_ssim = lambda_rgb lambda_dssim / n_rgb
  * (n_rgb = 3 sum(mask), at least 1), w_depth = lambda_depth / sum(depth_w), w_flow likewise;
+ * where the supervised pixel count is known only on the device (an in-between target made there,
+ * a 0 / 1 mask), has_count = 1 and (w_l1, w_ssim) = rgb_weights[count[0]] instead: the host's
+ * table of both weights for every count, rounded from the same float64 values as the arguments.
  * flow_delta: the flow error (px) beyond which its loss is linear (INFINITY: squared throughout);
  * has_depth / has_flow = 0 leave those channels' gradients 0.  Local size: a power of two. */
 __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
@@ -103,12 +106,17 @@ __kernel void image_loss_terms(__global const float *feat,     /* [npix, CF] */
                                __global const float *flow_gt,  /* [npix, 2] */
                                __global const float *flow_w,   /* [npix] */
                                const int has_depth, const int has_flow,
-                               const float w_l1, const float w_ssim, const float w_depth,
+                               const float w_l1_arg, const float w_ssim_arg, const float w_depth,
                                const float w_flow, const float flow_delta, const int npix,
                                __global float *v_feat,         /* [npix, CF] */
                                __global float *g_ssim,         /* [npix, NGRAD] */
                                __global float *partial,        /* [groups, NSUM] */
-                               __local float *scratch) {       /* [NSUM, local size] */
+                               __local float *scratch,         /* [NSUM, local size] */
+                               const int has_count,
+                               __global const int *count,      /* [1]: supervised pixels (has_count) */
+                               __global const float2 *rgb_weights) { /* [npix + 1]: (w_l1, w_ssim) */
+    const float2 w_rgb = has_count ? rgb_weights[clamp(count[0], 0, npix)] : (float2)(w_l1_arg, w_ssim_arg);
+    const float w_l1 = w_rgb.x, w_ssim = w_rgb.y;
     const int p = get_global_id(0);
     const int lid = get_local_id(0), lsize = get_local_size(0);
     float sum[NSUM];

@@ -505,10 +505,12 @@ class BetweenSampler:
 
     def draw(self, rng: np.random.Generator, model_flow=None, model_weight: float = 0.0, step: int = 0):
         """(camera, time, device targets) of one in-between step, or None where nothing is
-        supervised.  model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement
-        from t to t_to, blended into the target with model_weight (between_target); it is called
-        first at the step's own time, then (model_splat) at the pair's two frames' times, unless
-        their motion rendered within motion_refresh steps before ``step`` is kept."""
+        supervised (targets built on the device leave their count there: the step finds it zero
+        after its read-back and is dropped then, train.trainer.Trainer._step).
+        model_flow(camera, t, t_to) -> [H, W, 2]: the model's rendered displacement from t to t_to,
+        blended into the target with model_weight (between_target); it is called first at the
+        step's own time, then (model_splat) at the pair's two frames' times, unless their motion
+        rendered within motion_refresh steps before ``step`` is kept."""
         from .device_losses import device_targets, prepare_targets
         index = int(rng.integers(len(self.pairs)))
         pair = self.pairs[index]
@@ -525,10 +527,7 @@ class BetweenSampler:
                 fwd = ((model_flow(f0.camera, float(f0.time), t), None), (model_flow(f1.camera, float(f1.time), t), None))
         if self.device is not None:
             image, weight, count = self.device.build(index, s, disp, model_weight, fwd)
-            supervised = int(count.get()[0])      # the step's one read of its target: the loss's denominator
-            if supervised == 0:
-                return None
-            return f0.camera, t, device_targets(self.rt, image, weight, supervised)
+            return f0.camera, t, device_targets(self.rt, image, weight, count)   # count: read with the losses
         fwd = None if fwd is None else tuple(g if c is None else c * g for g, c in fwd)
         image, weight, t = self.target(index, s, disp, model_weight, fwd)
         if not weight.any():

@@ -1,6 +1,8 @@
 """The in-between target built on the device (issue 60): train/between.py's flow prediction and the
-model's blend, chained from the kernels of ops/between.py, into device memory, with no host work in
-the step but one read of the supervised pixel count.
+model's blend, chained from the kernels of ops/between.py, into device memory, with no host work
+and no read in the step: the supervised pixel count (the loss's denominator) stays on the device
+too, and the losses take their colour weights for it from a table there (device_losses.device_targets)
+and read it back with their sums.
 
 What stays on the host is made once, before training: the frames and the pairs' flows are uploaded
 once, the estimators' fused flows (consistent_flows) and the curved paths' Bends are made once per

@@ -35,7 +35,7 @@ class DeviceTargets:
     image: object                 # cla [H, W, 3]
     mask: object                  # cla [H, W]: 1 = supervise (all ones without a tool mask)
     has_mask: bool
-    n_rgb: float                  # 3 * sum(mask): the colour terms' denominator (at least 1)
+    n_rgb: Optional[float]        # 3 * sum(mask): the colour terms' denominator (at least 1)
     depth: Optional[object]       # cla [H, W] or None
     depth_w: Optional[object]     # cla [H, W]: (depth > 0) * mask
     n_depth: float
@@ -43,6 +43,8 @@ class DeviceTargets:
     flow_w: Optional[object]      # cla [H, W]: consistency mask * mask
     n_flow: float
     ssim_target: Optional[object] = None   # cla [H, W, NTMAP]: the blurred (y m, (y m)^2), per frame
+    supervised: Optional[object] = None    # cla int32 [1]: sum(mask) where only the device knows it
+                                           # (device_targets; n_rgb is then None until read back)
 
 
 def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, depth: Optional[np.ndarray] = None,
@@ -71,13 +73,42 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     return t
 
 
-def device_targets(rt, image, weight, supervised: int) -> DeviceTargets:
+def device_targets(rt, image, weight, supervised) -> DeviceTargets:
     """The DeviceTargets of an image [H, W, 3] and a 0 / 1 weight [H, W] made on the device (an
     in-between target, train/between_device.py), as prepare_targets(rt, image, weight,
-    temporary=True) makes them from host arrays; supervised: the pixels whose weight is 1."""
-    t = DeviceTargets(image, weight, True, max(3.0 * float(supervised), 1.0), None, None, 1.0, None, None, 1.0)
+    temporary=True) makes them from host arrays; supervised: the pixels whose weight is 1, an int
+    or an int32 [1] device array left there (the losses then take the colour terms' weights from
+    rgb_weight_table on the device and read the count back with their sums)."""
+    on_device = not isinstance(supervised, (int, np.integer))
+    n_rgb = None if on_device else rgb_denominator(supervised)
+    t = DeviceTargets(image, weight, True, n_rgb, None, None, 1.0, None, None, 1.0,
+                      supervised=supervised if on_device else None)
     t.ssim_target = _ssim_target(rt, t.image, t.mask, rt.pool())
     return t
+
+
+def rgb_denominator(supervised: int) -> float:
+    """n_rgb of a 0 / 1 mask with this many supervised pixels: 3 of them per pixel, at least 1."""
+    return max(3.0 * float(supervised), 1.0)
+
+
+def rgb_weights(cfg, n_rgb):
+    """(w_l1, w_ssim) of image_loss_terms as float32: lambda_rgb (1 - lambda_dssim) / n_rgb and
+    lambda_rgb lambda_dssim / n_rgb, in float64 and rounded once (n_rgb a float or a float64 array)."""
+    w_rgb = cfg.lambda_rgb / n_rgb
+    return np.float32(w_rgb * (1.0 - cfg.lambda_dssim)), np.float32(w_rgb * cfg.lambda_dssim)
+
+
+def rgb_weight_table(rt, cfg, npix: int):
+    """cla float32 [npix + 1, 2]: rgb_weights for every supervised pixel count 0 .. npix (the same
+    float64 operations, elementwise), for targets whose count stays on the device; per runtime,
+    lambdas and size."""
+    import pyopencl.array as cla
+
+    def make():
+        w_l1, w_ssim = rgb_weights(cfg, np.maximum(3.0 * np.arange(npix + 1, dtype=np.float64), 1.0))
+        return cla.to_device(rt.queue, np.ascontiguousarray(np.stack([w_l1, w_ssim], 1), np.float32))
+    return rt.cached(("image_loss.rgb_weights", float(cfg.lambda_rgb), float(cfg.lambda_dssim), int(npix)), make)
 
 
 def _ssim_target(rt, image, mask, allocator=None) -> object:
@@ -162,7 +193,8 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     g_ssim = rt.empty((H, W, NGRAD), np.float32)
     groups = gsize[0] // LOCAL
     partial = rt.empty((groups, NSUM), np.float32)
-    w_rgb = cfg.lambda_rgb / tgt.n_rgb
+    on_device = tgt.supervised is not None     # the count (and n_rgb) known on the device only
+    w_l1, w_ssim = (np.float32(0), np.float32(0)) if on_device else rgb_weights(cfg, tgt.n_rgb)
     dummy = tgt.mask.data
     rt.launch(
         rt.kernel(KFILE, "image_loss_terms", opts), gsize, (LOCAL,),
@@ -170,13 +202,16 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
         tgt.depth.data if use_depth else dummy, tgt.depth_w.data if use_depth else dummy,
         tgt.flow.data if use_flow else dummy, tgt.flow_w.data if use_flow else dummy,
         np.int32(use_depth), np.int32(use_flow),
-        np.float32(w_rgb * (1.0 - cfg.lambda_dssim)), np.float32(w_rgb * cfg.lambda_dssim),
+        w_l1, w_ssim,
         np.float32(cfg.lambda_depth / tgt.n_depth), np.float32(cfg.lambda_flow / tgt.n_flow),
         np.float32(cfg.flow_huber_delta), np.int32(npix),
-        v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL))
+        v.data, g_ssim.data, partial.data, cl.LocalMemory(4 * NSUM * LOCAL), np.int32(on_device),
+        tgt.supervised.data if on_device else dummy, rgb_weight_table(rt, cfg, npix).data if on_device else dummy)
     gb = _blur(rt, g_ssim, window)   # the blur's adjoint: same separable window (symmetric), zero border
 
     sums = {"image": partial}
+    if on_device:
+        sums["supervised"] = tgt.supervised
     wavelet_finish = None
     v_rgb = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
@@ -193,7 +228,8 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
 
     def finish(host: Dict[str, np.ndarray]) -> Tuple[float, Dict[str, float]]:
         s = host["image"].astype(np.float64).sum(axis=0)   # [NSUM]
-        l1, ssim = s[0] / tgt.n_rgb, s[1] / tgt.n_rgb
+        n_rgb = rgb_denominator(int(host["supervised"][0])) if on_device else tgt.n_rgb
+        l1, ssim = s[0] / n_rgb, s[1] / n_rgb
         rgb_loss = (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1.0 - ssim)
         total = cfg.lambda_rgb * rgb_loss
         parts: Dict[str, float] = dict(l1=float(l1), ssim=float(ssim), rgb=float(rgb_loss))
@@ -208,7 +244,7 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
             parts["wavelet"] = float(wavelet)
             total += cfg.lambda_wavelet * wavelet
         parts["total"] = float(total)
-        mse = s[4] / tgt.n_rgb
+        mse = s[4] / n_rgb
         parts["psnr"] = float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
         return float(total), parts
 

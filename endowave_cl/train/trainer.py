@@ -239,7 +239,7 @@ class Trainer:
         if drawn is None:
             return None
         camera, t, dev = drawn
-        return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))
+        return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))   # None: nothing supervised
 
     def schedule_step(self, order: List[int]):
         """One step as the schedule draws it (train's loop; benchmarks/bench_train_loop.py times it):
@@ -268,13 +268,15 @@ class Trainer:
             return motion_on_device(self.rt, out.features, FLOW.start)
         return out.features.get()[..., FLOW]
 
-    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Dict[str, float]:
+    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Optional[Dict[str, float]]:
         """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam.
         out: the step's forward when it was rendered already (train_step_between).
         The render does not wait for its pair count: the read-back is the step's wait, and where
         the pairs overflowed the binning's buffers (ops/binning.py) the step is done again from a
         checked render before anything is changed (the densification statistics are accumulated
-        after the read-back for that)."""
+        after the read-back for that).  Targets whose supervised pixel count stayed on the device
+        (device_losses.device_targets) come back with it: where it is 0 the step is dropped there,
+        nothing changed, and None returned (as the sampler's draw returns None for host targets)."""
         from ..ops.util import nonfinite_flag, read_back
         from ..render import accumulate_stats
         if out is None:
@@ -285,6 +287,8 @@ class Trainer:
                                     deterministic=True if self.cfg.deterministic else None,
                                     sh_factors=True)   # v_sh as factors: Adam forms it, the guard checks them
             host = read_back(self.rt, {**pending.sums, "nonfinite": nonfinite_flag(self.rt, grads.values())})
+            if "supervised" in host and int(host["supervised"][0]) == 0:
+                return None            # an in-between target that supervises nothing: no step
             if not out.overflowed:     # the pair count came back before the read-back did: no wait
                 break
             out = render(self.rt, self.params, camera, t, t_next, select=self.select_live)   # checked

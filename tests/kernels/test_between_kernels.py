@@ -261,3 +261,55 @@ def test_training_with_device_targets(rt, tiny_scene, tmp_path, monkeypatch):
         out[name] = download(tr.params).means
     np.testing.assert_array_equal(out["device"], out["again"])
     np.testing.assert_allclose(out["device"], out["host"], rtol=0, atol=TRAIN_TOL)
+
+
+def test_device_targets_that_supervise_nothing_drop_their_step(rt, tiny_scene, tmp_path, monkeypatch):
+    """The supervised pixel count of a device-built target stays on the device; a step whose
+    target supervises nothing is dropped after its read-back, nothing changed, and the schedule
+    takes a plain step instead: the same run, bit for bit, as reading the count in the draw and
+    skipping the step there (what the sampler did before)."""
+    from endowave_cl.data.scene import load_scene
+    from endowave_cl.gaussians import PARAM_NAMES, download
+    from endowave_cl.train import between as between_mod
+    from endowave_cl.train.between_device import DeviceTarget
+    from endowave_cl.train.trainer import Trainer
+    from conftest import tiny_config
+    scene = load_scene(tiny_scene)
+    monkeypatch.setenv("ENDOWAVE_BETWEEN_TARGET", "device")
+    build, draw = DeviceTarget.build, between_mod.BetweenSampler.draw
+
+    builds = []
+
+    def every_other_empty(self, *a, **kw):
+        image, weight, count = build(self, *a, **kw)
+        builds.append(1)
+        if len(builds) % 2:
+            weight.fill(np.float32(0))
+            count.fill(np.int32(0))
+        return image, weight, count
+
+    def draw_reading_the_count(self, *a, **kw):
+        drawn = draw(self, *a, **kw)
+        if drawn is not None and int(drawn[2].supervised.get()[0]) == 0:
+            return None
+        return drawn
+    monkeypatch.setattr(DeviceTarget, "build", every_other_empty)
+    runs = {}
+    for name in ("on_device", "read_in_draw"):
+        if name == "read_in_draw":
+            monkeypatch.setattr(between_mod.BetweenSampler, "draw", draw_reading_the_count)
+        tr = Trainer(scene, tiny_config(iterations=10, init_points=1500, between_prob=0.7, densify_from=1000,
+                                        densify_until=5, between_motion_refresh=3, deterministic=True),
+                     tmp_path / name, rt, log=lambda s: None)
+        kinds = []
+        builds.clear()
+        order = list(scene.train_indices)
+        for _ in range(10):
+            kinds.append(tr.schedule_step(order)[0])
+        runs[name] = (kinds, download(tr.params), tr.step)
+        assert len(builds) > kinds.count("between")          # some targets supervised nothing
+    (k0, g0, s0), (k1, g1, s1) = runs["on_device"], runs["read_in_draw"]
+    assert k0 == k1 and s0 == s1 == 10 and "between" in k0
+    assert sum(1 for k in k0 if k == "plain") > 0
+    for name in PARAM_NAMES:
+        assert np.array_equal(getattr(g0, name), getattr(g1, name)), name

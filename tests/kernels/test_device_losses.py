@@ -118,3 +118,51 @@ def test_device_losses_tiny_oclgrind(rt):
                                             wavelet_config=WaveletConfig())
     assert total == pytest.approx(ref_total + parts["wavelet"], rel=1e-5)
     assert np.isfinite(v.get()).all()
+
+
+def _both_counts(rt, image, mask, cfg, feats, wcfg=None):
+    """image_losses_and_grad of device_targets with the supervised count given as an int and left on
+    the device: (total, parts, v_features) of each."""
+    from endowave_cl.train.device_losses import device_targets
+    count = int(mask.sum())
+    img, m = cla.to_device(rt.queue, image), cla.to_device(rt.queue, mask)
+    dev = cla.to_device(rt.queue, feats)
+    out = []
+    for supervised in (count, cla.to_device(rt.queue, np.array([count], np.int32))):
+        tgt = device_targets(rt, img, m, supervised)
+        assert (tgt.n_rgb is None) == (not isinstance(supervised, int))
+        total, parts, v = image_losses_and_grad(rt, dev, tgt, cfg, CHANNELS, wavelet_config=wcfg)
+        out.append((total, parts, v.get()))
+    return out
+
+
+@pytest.mark.parametrize("share", [0.0, 0.001, 0.4, 1.0])
+@pytest.mark.parametrize("dssim", [0.2, 0.35])
+def test_device_count_gives_the_same_bits(rt, share, dssim):
+    """A target whose supervised pixel count stays on the device (an in-between target made there):
+    the colour weights from the table rgb_weight_table keeps there, the count read back with the
+    sums: the same loss values and the same gradient bits as with the count given by the host."""
+    f, feats = frame(11, 29, 37, depth=False, flow=False)
+    mask = (np.random.default_rng(3).uniform(size=(29, 37)) < share).astype(np.float32)
+    cfg = TrainConfig(lambda_dssim=dssim, lambda_rgb=0.7)
+    (t0, p0, v0), (t1, p1, v1) = _both_counts(rt, f["image"], mask, cfg, feats, WaveletConfig())
+    assert t0 == t1 and p0 == p1
+    assert np.array_equal(v0, v1)
+
+
+def test_rgb_weight_table_rounds_as_the_arguments(rt):
+    from endowave_cl.train.device_losses import rgb_denominator, rgb_weight_table, rgb_weights
+    cfg = TrainConfig(lambda_rgb=0.9, lambda_dssim=0.3)
+    table = rgb_weight_table(rt, cfg, 1000).get()
+    assert table.shape == (1001, 2) and table.dtype == np.float32
+    for c in (0, 1, 2, 3, 7, 333, 999, 1000):
+        assert tuple(table[c]) == rgb_weights(cfg, rgb_denominator(c)), c
+
+
+@pytest.mark.oclgrind
+def test_device_count_tiny_oclgrind(rt):
+    H, W = small(13, 9), small(17, 11)
+    f, feats = frame(6, H, W, depth=False, flow=False)
+    mask = (np.random.default_rng(4).uniform(size=(H, W)) < 0.5).astype(np.float32)
+    (t0, _, v0), (t1, _, v1) = _both_counts(rt, f["image"], mask, TrainConfig(use_wavelet=False), feats)
+    assert t0 == t1 and np.array_equal(v0, v1)
