@@ -2,15 +2,23 @@
 
 Each sub-command lives in ``endowave_cl/commands/<name>.py`` and provides
 ``add_arguments(parser)`` and ``run(args) -> int``.  Only commands whose module is
-present are offered, so ``--help`` lists exactly what works.
+present are offered, so ``--help`` lists exactly what works.  Only the module of the command
+being run is imported (``build_parser``): ``endowave-cl --help`` imports none, and a command
+imports what it needs at the top of its module.
 """
 from __future__ import annotations
 
+import argparse
+import importlib
+import importlib.util
 import signal
 import sys
 import threading
+import warnings
+from typing import List, Optional
 
-from . import __version__
+from . import __version__, env
+from .errors import EndowaveError
 
 # name -> one-line help; the module is endowave_cl.commands.<name>
 COMMANDS = {
@@ -30,15 +38,33 @@ DEVICE_COMMANDS = {"devices", "train", "render", "eval", "view"}  # the ones tha
 
 
 def _available():
-    import importlib.util
     for name, help_ in COMMANDS.items():
         if importlib.util.find_spec(f"endowave_cl.commands.{name}") is not None:
             yield name, help_
 
 
-def build_parser():
-    import argparse
-    import importlib
+class _NoExit(argparse.ArgumentParser):
+    def error(self, message):
+        raise argparse.ArgumentError(None, message)
+
+
+def command_in(argv: List[str]) -> Optional[str]:
+    """The sub-command that ``argv`` names (None when none), read past the top-level options the
+    way the full parser reads them (``--device X`` and its abbreviations)."""
+    pre = _NoExit(add_help=False)
+    pre.add_argument("--device")
+    pre.add_argument("command", nargs="?")
+    try:
+        return pre.parse_known_args(argv)[0].command
+    except argparse.ArgumentError:
+        return None
+
+
+def build_parser(argv: Optional[List[str]] = None):
+    """The parser of ``argv`` (default: sys.argv[1:]).  Every command is listed, but only the one
+    that argv names has its module imported and its arguments added: the others' modules import
+    what they run on (OpenCL, the trainer, ...), which ``--help`` and another command do not need."""
+    chosen = command_in(sys.argv[1:] if argv is None else list(argv))
     device_help = ("OpenCL device: index or platform:device from 'endowave-cl devices', or a name "
                    "substring (default: $ENDOWAVE_CL_DEVICE, else a GPU, else the PoCL CPU device)")
     common = argparse.ArgumentParser(add_help=False)
@@ -51,9 +77,12 @@ def build_parser():
     parser.add_argument("--device", default=None, help=device_help)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_ in _available():
+        parents = [common] if name in DEVICE_COMMANDS else []
+        if name != chosen:
+            sub.add_parser(name, help=help_, parents=parents)
+            continue
         mod = importlib.import_module(f"endowave_cl.commands.{name}")
-        p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip(),
-                           parents=[common] if name in DEVICE_COMMANDS else [],
+        p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip(), parents=parents,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)
@@ -86,7 +115,6 @@ def _close_progress_bars() -> None:
 
 
 def _debug() -> bool:
-    from . import env
     try:
         return env.flag("ENDOWAVE_CL_DEBUG")
     except env.EnvError:
@@ -116,10 +144,13 @@ def main(argv=None) -> int:
             if threading.current_thread() is threading.main_thread():
                 for s in (signal.SIGINT, signal.SIGTERM):
                     old[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
-            import warnings
             # PoCL's compiler prints ABI notes for the CPU rasterizer's 16-wide vectors: not for users
             warnings.filterwarnings("ignore", message="Non-empty compiler output")
-            parser = build_parser()
+            try:
+                parser = build_parser(argv)
+            except ImportError as e:    # a dependency of the command is missing: a broken install
+                print(f"{name}: error: {e} (reinstall endowave-cl)", file=sys.stderr)
+                return 1
             args = parser.parse_args(argv) if not pending else None
             if old:     # from here a signal interrupts at once (train turns it into save-and-stop)
                 signal.signal(signal.SIGINT, old[signal.SIGINT])
@@ -142,16 +173,17 @@ def main(argv=None) -> int:
 
 
 def _run(args, name: str) -> int:
-    from . import env
-    from .errors import EndowaveError
     try:
         env.check_environment()      # every ENDOWAVE_* variable parses, before any work
     except env.EnvError as e:
         print(f"{name}: error: {e}", file=sys.stderr)
         return 1
+    # host_memory (ctypes.util: subprocess, tempfile) and runtime (numpy) imported here, not at the
+    # top: cli.py imports nothing slow before main() has installed its signal handlers (a Ctrl-C
+    # at start-up is one line, tests/cli/test_hostile.py) and --help needs neither
     from .host_memory import keep_freed_memory
-    keep_freed_memory()          # large host temporaries reuse heap memory (host_memory.py)
     from .runtime import KernelBuildError, OpenCLUnavailable
+    keep_freed_memory()          # large host temporaries reuse heap memory (host_memory.py)
     try:
         try:
             return int(args._module.run(args) or 0)

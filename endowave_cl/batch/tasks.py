@@ -18,17 +18,27 @@ endowave_cl.batch.tasks`` (spec on stdin, result as the last stdout line) in the
 from __future__ import annotations
 
 import contextlib
+import gc
 import hashlib
 import json
 import os
+import signal
 import socket
 import sys
+import threading
 import time
+import traceback
 import uuid
+import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from .. import cli
 from ..atomic import stale_temporaries, write_json_atomic
+from ..errors import EndowaveError
+from ..runtime import KernelBuildError, OpenCLUnavailable
+from ..train.run_folder import RunFolderBusy, RunLock, make_run_dir, retire_previous_run
+from .manifest import MAX_TASK_CPUS, setting
 
 BATCH_DIR = "batch"
 RESULT_PREFIX = "ENDOWAVE_BATCH_RESULT "
@@ -113,7 +123,6 @@ def _value_text(v) -> str:
 def stage_options(manifest, scene, stage: str) -> dict:
     """What a stage's result depends on besides the scene's frames: its completion record stores
     this, and a re-run with other options does the stage again."""
-    from .manifest import setting
     if stage == "flow":
         return {"method": setting(scene, "flow_method"), "downscale": setting(scene, "downscale"),
                 "max_pixels": setting(scene, "flow_max_pixels")}
@@ -134,7 +143,6 @@ def export_path(run_dir, t: float) -> Path:
 
 def command_argv(manifest, scene, stage: str, run_dir) -> List[str]:
     """The endowave-cl command line of a stage (without --restart, which the worker adds)."""
-    from .manifest import setting
     run, src = str(run_dir), str(scene.path)
     dev = manifest.resources.get("device")
     device = ["--device", dev] if dev else []
@@ -162,7 +170,6 @@ def task_env(manifest) -> Dict[str, str]:
     """Environment of a task's process: plain progress lines (the driver reads them from the log)
     and, for PoCL and torch, as many threads as the task has CPU cores (two tasks on a 2-core
     machine would otherwise each start 2 threads per kernel and contend)."""
-    from .manifest import MAX_TASK_CPUS
     cores = str(min(MAX_TASK_CPUS, max(1, int(manifest.resources["cpus"]))))
     env = {"ENDOWAVE_PROGRESS": "plain", "ENDOWAVE_PROGRESS_INTERVAL": str(PROGRESS_INTERVAL)}
     # PoCL's CPU thread count: POCL_MAX_PTHREAD_COUNT up to PoCL 4 (the pyopencl wheels' PoCL),
@@ -182,7 +189,6 @@ def make_spec(manifest, scene, stage: str, run_dir, batch_id: str, restart: bool
 # ---------------------------------------------------------------------------- completion (driver)
 def _train_state(manifest, scene, run_dir) -> tuple:
     """("done" | "todo", why, restart) of the train stage, from the run folder's files."""
-    from .manifest import setting
     final = train_final(run_dir)
     rec = read_json(record(run_dir, "train"))
     opts = stage_options(manifest, scene, "train")
@@ -235,7 +241,6 @@ def _clear_caches() -> None:
         cache = getattr(sys.modules.get(mod), name, None)
         if isinstance(cache, dict):
             cache.clear()
-    import gc
     gc.collect()
 
 
@@ -243,23 +248,20 @@ def _run_command(argv: List[str]) -> Dict[str, Any]:
     """The command, in this process: {"ok"} or {"ok": False, "kind", "error"} with the one-line
     message the CLI would print.  kind "data": bad input the user fixes (EndowaveError: a scene, a
     setting, a run folder); others: "device", "io", "interrupted", "unexpected"."""
-    from .. import cli
-    from ..errors import EndowaveError
-    from ..runtime import KernelBuildError, OpenCLUnavailable
-    import warnings
     warnings.filterwarnings("ignore", message="Non-empty compiler output")   # as cli.main does
     name = f"endowave-cl {argv[0]}"
     try:
-        args = cli.build_parser().parse_args(argv)
+        args = cli.build_parser(argv).parse_args(argv)
     except SystemExit:
         return {"ok": False, "kind": "unexpected", "error": f"{name}: error: bad arguments {argv[1:]}"}
+    except ImportError as e:        # a dependency of the command is missing: a broken install
+        return {"ok": False, "kind": "unexpected", "error": f"{name}: error: {e}"}
     try:
         rc = int(args._module.run(args) or 0)
         if rc != 0:
             return {"ok": False, "kind": "unexpected", "error": f"{name}: exit status {rc}"}
         return {"ok": True}
     except EndowaveError as e:
-        from ..train.run_folder import RunFolderBusy
         kind = BUSY_KIND if isinstance(e, RunFolderBusy) else "data"
         return {"ok": False, "kind": kind, "error": f"{name}: error: {e}"}
     except (OpenCLUnavailable, KernelBuildError) as e:
@@ -271,7 +273,6 @@ def _run_command(argv: List[str]) -> Dict[str, Any]:
     except MemoryError:
         return {"ok": False, "kind": "unexpected", "error": f"{name}: error: out of memory"}
     except Exception as e:  # noqa: BLE001  a bug: one line in the report, the traceback in the log
-        import traceback
         traceback.print_exc()
         first = str(e).splitlines()[0] if str(e) else ""
         return {"ok": False, "kind": "unexpected", "error": f"{name}: error: unexpected {type(e).__name__}: {first}"}
@@ -281,8 +282,6 @@ def _retire(run_dir: Path) -> Dict[str, Any]:
     """--force or changed settings: move the earlier run's files to RUN/previous_run/ (what
     ``train --restart`` does), here under the run folder lock and once per batch invocation, so
     that a retried attempt resumes the new run instead of restarting it again."""
-    from ..errors import EndowaveError
-    from ..train.run_folder import RunFolderBusy, RunLock, make_run_dir, retire_previous_run
     try:
         make_run_dir(run_dir)
         lock = RunLock(run_dir).acquire()
@@ -364,9 +363,6 @@ def _die_with_parent(ppid: int) -> None:
     """A watchdog thread: when the driver that started this worker is gone (SIGKILL, a crash: the
     worker is re-parented), SIGTERM ourselves (train saves a checkpoint and stops, as on a
     Ctrl-C of the driver), and exit outright if that has not ended us within PARENT_GRACE."""
-    import signal
-    import threading
-
     def watch():
         while os.getppid() == ppid and ppid != 1:
             time.sleep(PARENT_POLL)

@@ -11,6 +11,13 @@ The manifest format and running on a cluster: docs/BATCH.md.  Exit status 1 when
 """
 from __future__ import annotations
 
+import math
+
+from ..batch.executors import make_executor
+from ..batch.manifest import load_manifest, remote_address
+from ..batch.runner import run_batch
+from ..errors import EndowaveError
+
 
 def add_arguments(p) -> None:
     p.add_argument("manifest", help="TOML manifest (docs/BATCH.md)")
@@ -29,11 +36,6 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import math
-    from ..batch.executors import make_executor
-    from ..batch.manifest import load_manifest, remote_address
-    from ..batch.runner import run_batch
-    from ..errors import EndowaveError
     if args.cpus is not None and args.cpus < 1:
         raise EndowaveError(f"--cpus must be at least 1, got {args.cpus}")
     if args.gpus is not None and args.gpus < 0:

@@ -1,6 +1,11 @@
 """List the OpenCL platforms and devices; '*' marks the device that would be used."""
 from __future__ import annotations
 
+import pyopencl as cl
+
+from ..ops.rasterize import explain_choice
+from ..runtime import OpenCLUnavailable, Runtime, build_problem, choose_device, list_devices
+
 
 def add_arguments(p) -> None:
     p.add_argument("--build-test", action="store_true",
@@ -10,8 +15,6 @@ def add_arguments(p) -> None:
 def _rasterizer(entry) -> str:
     """The rasterizer variant this device runs for the renderer's 6 channels, and why (the probe
     verdicts of the lane counts tried; a first call probes them in child processes)."""
-    from ..ops.rasterize import explain_choice
-    from ..runtime import Runtime
     try:
         ch, notes, _ = explain_choice(Runtime(entry, disk_cache=True), 6)
     except Exception as ex:   # a device that cannot even make a context
@@ -24,9 +27,6 @@ def _one_line(ex) -> str:
 
 
 def run(args) -> int:
-    import pyopencl as cl
-
-    from ..runtime import OpenCLUnavailable, Runtime, build_problem, choose_device, list_devices
     entries = list_devices()
     try:
         chosen, none_builds = choose_device(getattr(args, "device", None), entries), None

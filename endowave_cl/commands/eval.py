@@ -18,6 +18,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..atomic import write_json_atomic
+from ..baselines import LABELS
+from ..data.scene import TEST_EVERY, check_supervised
+from ..errors import EndowaveError
+from ..evaluation import evaluate_run, write_figures
+from ..gaussians import upload
+from ..run_io import load_run
+from ..runtime import get_runtime
+
 
 MAX_FPS_RUNS = 10000   # timed renders for the FPS figure
 
@@ -37,7 +46,6 @@ def _lp(v) -> str:
 
 def table(m: dict) -> str:
     """The printed comparison: one line per renderer, then the margin and, with gt_flow, the flow."""
-    from ..baselines import LABELS
     lines = [f"{'on the ' + m.get('split', 'test') + ' frames':<38} {'PSNR':>7} {'masked':>7} {'SSIM':>7} {'LPIPS':>7}"]
     entries = [("model", m)] + [(LABELS[n], b) for n, b in m.get("baselines", {}).items()]
     for label, e in entries:
@@ -71,13 +79,6 @@ def table(m: dict) -> str:
 
 
 def run(args) -> int:
-    from ..atomic import write_json_atomic
-    from ..data.scene import TEST_EVERY
-    from ..errors import EndowaveError
-    from ..evaluation import evaluate_run, write_figures
-    from ..gaussians import upload
-    from ..run_io import load_run
-    from ..runtime import get_runtime
     if args.fps_runs < 0:
         raise EndowaveError(f"--fps-runs must be >= 0, got {args.fps_runs}")
     if args.fps_runs > MAX_FPS_RUNS:    # 1e20 timed renders never end (issue 57)
@@ -87,7 +88,6 @@ def run(args) -> int:
         n = len(r.scene.frames)
         raise EndowaveError(f"{r.scene.path}: {n} frame(s) and no test frame to evaluate (test frames are "
                             f"1, {1 + TEST_EVERY}, {1 + 2 * TEST_EVERY}, ...: eval needs at least 2 frames)")
-    from ..data.scene import check_supervised
     check_supervised(r.scene, r.scene.split)   # a frame whose mask is all tool cannot be scored (issue 57)
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)

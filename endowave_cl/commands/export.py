@@ -2,6 +2,16 @@
 in the units of the scene's depth files and poses."""
 from __future__ import annotations
 
+import json
+import sys
+from pathlib import Path
+
+from ..checkpoint import load_newest_good_checkpoint
+from ..data.scene import load_scene
+from ..errors import EndowaveError
+from ..export_ply import export_ply
+from ..run_io import check_run_scene, run_world_scale
+
 
 def add_arguments(p) -> None:
     p.add_argument("run", help="run folder written by endowave-cl train")
@@ -12,11 +22,6 @@ def add_arguments(p) -> None:
 def _check_scene(run, state, ck, world_scale) -> None:
     """The run's scene fingerprint against its scene folder, when that folder is still there (the
     PLY is in the units of the scene the run was trained on: another one's would not match it)."""
-    import json
-    import sys
-    from pathlib import Path
-    from ..data.scene import load_scene
-    from ..run_io import check_run_scene
     try:
         d = json.loads((Path(run) / "config.json").read_text())
         scene_path, downscale = Path(d["scene"]), float(d.get("downscale", 1))
@@ -32,12 +37,6 @@ def _check_scene(run, state, ck, world_scale) -> None:
 
 
 def run(args) -> int:
-    import sys
-    from pathlib import Path
-
-    from ..errors import EndowaveError
-    from ..export_ply import export_ply
-    from ..checkpoint import load_newest_good_checkpoint
     if not 0.0 <= args.time <= 1.0:
         raise EndowaveError(f"--time must be in [0, 1], got {args.time}")
     run = Path(args.run)
@@ -56,7 +55,6 @@ def run(args) -> int:
     if ck is None:
         raise EndowaveError(f"{args.run}: no checkpoint_*.npz found")
     g = state["gaussians"]
-    from ..run_io import run_world_scale
     world_scale = run_world_scale(state, ck)
     _check_scene(run, state, ck, world_scale)
     n = export_ply(out, g, args.time, scale=1.0 / world_scale)   # in the scene files' units

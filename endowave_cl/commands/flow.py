@@ -12,11 +12,19 @@ error against the ground truth is printed.
 from __future__ import annotations
 
 import time
+from pathlib import Path
+
+import numpy as np
+
+from ..data import flow_for_scene, load_scene
+from ..data.flo import read_flow_file
+from ..data.flow import METHODS, MIN_ESTIMATION_PIXELS, _fit_to_scene
+from ..errors import DataError, EndowaveError
+from ..train.config import TrainConfig
+from .train import check_downscale_arg, check_downscaled_size
 
 
 def add_arguments(parser):
-    from ..data.flow import METHODS
-    from ..train.config import TrainConfig
     default = TrainConfig().flow_method
     parser.add_argument("scene", help="scene folder in the EndoNeRF layout")
     parser.add_argument("--method", choices=METHODS, default=default,
@@ -33,8 +41,6 @@ def add_arguments(parser):
 
 def gt_epe(scene, result):
     """Mean end-point error on valid pixels against scene/gt_flow (consecutive pairs only), or None."""
-    import numpy as np
-    from pathlib import Path
     gt_dir = Path(scene.path) / "gt_flow"
     errs = []
     for k, pair in result.items():
@@ -43,25 +49,17 @@ def gt_epe(scene, result):
             continue
         valid = pair.valid > 0
         if valid.any():
-            from ..data.flo import read_flow_file
-            from ..data.flow import _fit_to_scene
             # one-line errors naming the file for a damaged one, NaN or absurd vectors (1e30)
             gt = _fit_to_scene(read_flow_file(f), f, scene)
             if gt.shape != pair.flow.shape:
-                from ..errors import DataError
                 raise DataError(f"{f}: ground-truth flow is {list(gt.shape)}, the frames are {list(pair.flow.shape)}")
             errs.append(float(np.linalg.norm(pair.flow - gt, axis=-1)[valid].mean()))
     return (float(np.mean(errs)), len(errs)) if errs else None
 
 
 def run(args) -> int:
-    import numpy as np
-    from ..data import flow_for_scene, load_scene
-    from ..errors import EndowaveError
-    from .train import check_downscale_arg, check_downscaled_size
     check_downscale_arg(args.downscale)
     check_downscaled_size(args.scene, args.downscale)
-    from ..data.flow import MIN_ESTIMATION_PIXELS
     if args.max_pixels < 0 or 0 < args.max_pixels < MIN_ESTIMATION_PIXELS:
         raise EndowaveError(f"--max-pixels must be 0 (the frame's size) or at least {MIN_ESTIMATION_PIXELS}, "
                             f"got {args.max_pixels}")

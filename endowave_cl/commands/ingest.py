@@ -15,6 +15,11 @@ or the output size.  OUT appears complete or not at all.
 """
 from __future__ import annotations
 
+import time
+
+from ..data.ingest import IngestOptions, describe_split, ingest
+from ..data.scene import load_scene
+
 
 def add_arguments(p) -> None:
     p.add_argument("source", help="a video file, or a folder of .png / .jpg frames (name order)")
@@ -42,7 +47,6 @@ def add_arguments(p) -> None:
 
 
 def options_from_args(args):
-    from ..data.ingest import IngestOptions
     return IngestOptions(start=args.start, end=args.end, stride=args.stride, max_frames=args.max_frames,
                          width=args.width, height=args.height, focal=args.focal, fov=args.fov,
                          near=args.near, far=args.far, masks=args.masks, depth=args.depth,
@@ -51,7 +55,6 @@ def options_from_args(args):
 
 
 def report(r, log=print) -> None:
-    from ..data.ingest import describe_split
     for w in r.warnings:
         log(f"warning: {w}")
     extra = [x for x, on in (("depth", r.has_depth), ("masks", r.has_masks)) if on]
@@ -61,10 +64,6 @@ def report(r, log=print) -> None:
 
 
 def run(args) -> int:
-    import time
-
-    from ..data.ingest import ingest
-    from ..data.scene import load_scene
     t0 = time.perf_counter()
     r = ingest(args.source, args.out, options_from_args(args), force=args.force, progress=not args.quiet)
     report(r)

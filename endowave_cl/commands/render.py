@@ -4,10 +4,20 @@ frame in time order (H.264 in MP4, which browsers play), written under RUN/rende
 written to a temporary name and renamed)."""
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from ..atomic import stale_temporaries, write_png_atomic
+from ..errors import EndowaveError
+from ..gaussians import upload
+from ..progress import progress as progress_bar
+from ..render import render
+from ..run_io import load_run
+from ..runtime import get_runtime
+from ..video import depth_colour, depth_range, write_video
 
 DEPTH_PNG_SCALE = 1000.0   # 16-bit depth PNGs store depth x 1000 in the units of the scene's files
                            # (millimetres when they are in metres)
@@ -25,15 +35,6 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..gaussians import upload
-    from ..progress import progress as progress_bar
-    from ..render import render
-    from ..atomic import write_png_atomic
-    from ..run_io import load_run
-    from ..runtime import get_runtime
-
-    import math
-    from ..errors import EndowaveError
     if not (math.isfinite(args.fps) and args.fps > 0):
         raise EndowaveError(f"--fps must be a positive number, got {args.fps}")
     if not (args.no_video or FPS_RANGE[0] <= args.fps <= FPS_RANGE[1]):   # the encoders fail outside it (issue 57)
@@ -42,7 +43,6 @@ def run(args) -> int:
     rt = get_runtime(getattr(args, "device", None))
     params = upload(rt, r.gaussians)
     out = Path(args.run) / "render"
-    from ..atomic import stale_temporaries
     for folder in (out, out / "frames", out / "depth", out / "depth_colour"):   # left by a killed render
         for p in stale_temporaries(folder):
             p.unlink()
@@ -66,13 +66,11 @@ def run(args) -> int:
             video_frames.append((img * 255 + 0.5).astype(np.uint8))
     colour_note = ""
     if depths:
-        from ..video import depth_colour, depth_range
         lo, hi = depth_range([d for _, d, _ in depths], [v for _, _, v in depths])
         for name, d, valid in depths:
             write_png_atomic(out / "depth_colour" / name, depth_colour(d, valid, lo, hi))
         colour_note = f"; depth_colour/ = turbo, red = near {lo:.4g}, blue = far {hi:.4g} (file units)"
     if video_frames:
-        from ..video import write_video
         path = out / "video.mp4"
         try:
             codec = write_video(path, video_frames, args.fps)

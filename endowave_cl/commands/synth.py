@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import time
 
+from ..data.scene import load_scene
+from ..data.synth import make_synthetic_scene
+from ..errors import DataError
+
 
 def add_arguments(parser):
     parser.add_argument("out", help="output scene folder (must be absent or empty unless --force)")
@@ -23,9 +27,6 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from ..data.synth import make_synthetic_scene
-    from ..data.scene import load_scene
-    from ..errors import DataError
     start = time.perf_counter()
     try:
         out = make_synthetic_scene(args.out, width=args.width, height=args.height, frames=args.frames,

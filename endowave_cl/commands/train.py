@@ -14,8 +14,26 @@ checkpoints it kept are from before.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
+import warnings
 from pathlib import Path
+
+import cv2
+from tqdm import tqdm
+
+from ..data.images import list_images
+from ..data.ingest import ingest
+from ..data.scene import apply_split, check_supervised, load_scene
+from ..data.synth import make_synthetic_scene
+from ..errors import EndowaveError
+from ..evaluation import flow_references
+from ..runtime import get_runtime
+from ..train.config import (BASE_ITERATIONS, RECIPES, STEPS_PER_TRAINING_FRAME, load_config, settings_text,
+                            validate_config)
+from ..train.trainer import Trainer
+from .ingest import report
 
 DEMO_SIZE = (160, 128, 24)       # width, height, frames of the built-in demo scene
 DEMO_ITERATIONS = 1500           # enough for a clear PSNR rise in a couple of minutes on 2 CPU cores
@@ -31,13 +49,11 @@ class _ListSettings(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from ..train.config import settings_text
         sys.stdout.write(settings_text())
         parser.exit(0)
 
 
 def add_arguments(p) -> None:
-    from ..train.config import BASE_ITERATIONS, RECIPES, STEPS_PER_TRAINING_FRAME
     p.add_argument("scene", nargs="?", help="scene folder in the EndoNeRF layout, or a video file (ingested into "
                                             "RUN/scene with `endowave-cl ingest`'s defaults; omit with --demo)")
     p.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
@@ -70,8 +86,6 @@ def add_arguments(p) -> None:
 
 
 def build_config(args):
-    from ..errors import EndowaveError
-    from ..train.config import load_config
     overrides = {}
     for item in args.set:
         if "=" not in item:
@@ -103,7 +117,6 @@ def build_config(args):
     changes["use_flow"] = cfg.use_flow and not args.no_flow
     changes["use_wavelet"] = cfg.use_wavelet and not args.no_wavelet
     changes["use_depth"] = cfg.use_depth and not args.no_depth
-    from ..train.config import validate_config
     cfg = cfg.replace(**changes)
     validate_config(cfg, "the command line")
     return cfg
@@ -113,17 +126,12 @@ MIN_IMAGE_SIZE = 16   # pixels per side after --downscale: the flow estimator an
 
 
 def check_downscale_arg(downscale: float) -> None:
-    import math
-    from ..errors import EndowaveError
     if not (math.isfinite(downscale) and downscale >= 1):
         raise EndowaveError(f"--downscale must be a finite number >= 1, got {downscale}")
 
 
 def check_downscaled_size(scene_path, downscale: float) -> None:
     """Refuse a downscale that leaves too few pixels, before the scene loader or OpenCV fail on it."""
-    import cv2
-    from ..data.images import list_images
-    from ..errors import EndowaveError
     img_dir = Path(scene_path) / "images"
     if downscale == 1 or not img_dir.is_dir():
         return                       # the scene loader reports a missing folder
@@ -142,7 +150,6 @@ def build_notice(rt):
     """The line printed before the first kernel build from source (an empty cache: the first run on
     this device, or after an update), so that a cold start does not look hung."""
     def notice(what: str) -> None:
-        from tqdm import tqdm
         how_long = "a few seconds to a minute on a GPU" if rt.is_gpu else "1-2 minutes on a 2-core CPU"
         tqdm.write(f"building the OpenCL kernels for this device (first run here with this version; about "
                    f"{how_long}; cached for later runs; starting with {what}) ...")
@@ -155,10 +162,6 @@ VIDEO_SCENE = "scene"    # RUN/scene: where `train VIDEO` ingests the video
 def ingest_video_into_run(video: Path, out: Path, quiet: bool = False) -> Path:
     """RUN/scene ingested from ``video`` with ingest's defaults, or the one an earlier `train VIDEO`
     made from the same file (a resume)."""
-    import json
-    from ..commands.ingest import report
-    from ..data.ingest import ingest
-    from ..errors import EndowaveError
     scene = out / VIDEO_SCENE
     if (scene / "poses_bounds.npy").is_file():
         try:
@@ -177,12 +180,6 @@ def ingest_video_into_run(video: Path, out: Path, quiet: bool = False) -> Path:
 
 
 def run(args) -> int:
-    from ..data.scene import apply_split, load_scene
-    from ..errors import EndowaveError
-    from ..runtime import get_runtime
-    from ..train.trainer import Trainer
-
-    import warnings
     # numpy overflows in densification only on parameters that have already diverged; the divergence
     # guard reports that in one line, so its warnings would only be noise
     warnings.filterwarnings("ignore", message="overflow encountered", category=RuntimeWarning)
@@ -196,7 +193,6 @@ def run(args) -> int:
     if args.scene and scene_path.is_file():          # a video: ingest it into the run folder first
         scene_path = ingest_video_into_run(scene_path, out, quiet=args.quiet)
     if args.demo and not (scene_path / "poses_bounds.npy").is_file():
-        from ..data.synth import make_synthetic_scene
         w, h, n = DEMO_SIZE
         print(f"generating the demo scene ({w}x{h}, {n} frames) in {scene_path}")
         make_synthetic_scene(scene_path, width=w, height=h, frames=n, seed=0, force=True)
@@ -208,9 +204,7 @@ def run(args) -> int:
         raise EndowaveError(f"{scene_path}: {len(scene.frames)} frame(s) give {len(scene.train_indices)} "
                             f"training and {len(scene.test_indices)} test frames; training needs at least "
                             f"one of each (at least 2 frames: frame 1 is the first test frame)")
-    from ..data.scene import check_supervised
     check_supervised(scene, scene.split)      # masks leave something to train on and to score (issue 57)
-    from ..evaluation import flow_references
     flow_references(scene)   # gt_flow/ read and checked now, not after training (issue 57); kept for the end
     if not scene.has_depth:
         cfg = cfg.replace(use_depth=False)

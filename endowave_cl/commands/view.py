@@ -7,7 +7,18 @@ The camera starts at the first frame's training camera.  Needs the [viewer] extr
 pip install -c constraints.txt ".[viewer]"."""
 from __future__ import annotations
 
+import contextlib
+import io
+import time
 from pathlib import Path
+
+from ..checkpoint import checkpoints_by_step
+from ..cli import Terminated
+from ..errors import EndowaveError
+from ..run_io import load_run
+from ..runtime import get_runtime
+from ..viewer import ViewerModel
+from ..viewer_app import ViewerApp, port_problem
 
 DEMO_HINT = "make one with: endowave-cl train --demo --out runs/demo   (about 1.5 minutes on 2 CPU cores)"
 
@@ -38,11 +49,6 @@ def newest_run(root: Path):
 
 
 def run(args) -> int:
-    import contextlib
-    import io
-    import time
-
-    from ..errors import EndowaveError
     if not 0 < args.port < 65536:
         raise EndowaveError(f"--port must be in 1..65535, got {args.port}")
     if args.demo and args.run:
@@ -59,7 +65,6 @@ def run(args) -> int:
     if not run_dir.is_dir():
         raise EndowaveError(f"{run_dir}: run folder not found")
     # the run's own problems first, before what the viewer needs installed
-    from ..checkpoint import checkpoints_by_step
     if not (run_dir / "config.json").is_file():
         raise EndowaveError(f"{run_dir}: not a training run (no config.json); train one with endowave-cl train")
     if not checkpoints_by_step(run_dir):
@@ -71,10 +76,6 @@ def run(args) -> int:
         raise EndowaveError("the viewer needs viser: in a checkout of endowave-cl, pip install -c constraints.txt "
                             "\".[viewer]\" (elsewhere: pip install \"viser>=1.1\")") from None
 
-    from ..run_io import load_run
-    from ..runtime import get_runtime
-    from ..viewer import ViewerModel
-    from ..viewer_app import ViewerApp, port_problem
     # the port is checked before the (slower) model load so a taken port is reported at once
     problem = port_problem(args.host, args.port)
     if problem:
@@ -91,7 +92,6 @@ def run(args) -> int:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt as e:
-        from ..cli import Terminated
         if isinstance(e, Terminated):   # SIGTERM: the CLI reports it and exits 143
             raise
         print("stopped")                # Ctrl-C is how a user ends the viewer: not an error

@@ -412,11 +412,11 @@ def test_render_fps_the_encoders_cannot_write_is_refused_up_front(own_run, fps):
 
 
 def test_render_video_failure_is_one_warning_line(own_run, monkeypatch):
-    from endowave_cl import video
+    from endowave_cl.commands import render
 
     def broken(path, frames, fps, codec=None):
         raise OSError("FFMPEG STDERR OUTPUT:\nboom: cannot encode\nmore noise")
-    monkeypatch.setattr(video, "write_video", broken)
+    monkeypatch.setattr(render, "write_video", broken)     # video.write_video as the command imports it
     scene, run = own_run
     rc, out, err = _main("render", run, "--fps", "5")
     assert rc == 0 and err.strip() == "warning: video not written (boom: cannot encode); the frames are written as PNG"

@@ -76,7 +76,7 @@ def test_devices_command_says_which_cannot_build(monkeypatch, capsys):
     monkeypatch.setattr(devices, "_rasterizer", lambda e: "(not probed in this test)")
     fake = lambda e: None if e.is_oclgrind else "error: unknown target CPU 'generic'"   # noqa: E731
     monkeypatch.setattr(D, "build_problem", fake)   # what choose_device calls
-    monkeypatch.setattr(R, "build_problem", fake)   # what the devices command imports
+    monkeypatch.setattr(devices, "build_problem", fake)   # what the devices command imports
     with pytest.raises(R.OpenCLUnavailable, match="no OpenCL device here can build kernels"):
         devices.run(SimpleNamespace(device=None, build_test=False))
     out = capsys.readouterr().out
