@@ -12,11 +12,18 @@ written right now (``stale_temporaries``).  Finished files get the permissions a
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import re
 import shutil
 import tempfile
 from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import DataError
 
 # .<name>.<pid>.<random>.tmp, as written by atomic_open (atomic_directory uses the same pattern
 # for folders; a trailing extension is allowed for writers that need one, e.g. .tmp.mp4)
@@ -94,27 +101,21 @@ def write_bytes_atomic(path, data: bytes) -> None:
 def json_safe(obj):
     """``obj`` with every non-finite float replaced by None: JSON has no NaN or Infinity, and
     Python's ``json`` would write them as bare words that other readers reject."""
-    import math
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):
         return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
-    try:  # numpy scalars
-        import numpy as np
-        if isinstance(obj, np.floating):
-            return json_safe(float(obj))
-        if isinstance(obj, np.integer):
-            return int(obj)
-    except ImportError:  # pragma: no cover
-        pass
+    if isinstance(obj, np.floating):   # numpy scalars
+        return json_safe(float(obj))
+    if isinstance(obj, np.integer):
+        return int(obj)
     return obj
 
 
 def write_json_atomic(path, obj, indent: int = 1) -> None:
     """Strict JSON (non-finite floats become null) written atomically."""
-    import json
     write_bytes_atomic(path, json.dumps(json_safe(obj), indent=indent, allow_nan=False).encode())
 
 
@@ -123,7 +124,6 @@ def save_png(path, image, atomic: bool = True) -> None:
 
     ``atomic=False`` writes directly: for files inside a temporary folder that is renamed as a whole.
     """
-    import cv2
     ok, buf = cv2.imencode(".png", image)
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
@@ -141,7 +141,6 @@ def atomic_directory(final, force: bool = False):
     removed only after the new folder is complete).  On any error the temporary folder is
     deleted and ``final`` is left as it was.
     """
-    from .errors import DataError
     final = Path(final)
     if final.exists():
         if not final.is_dir():
@@ -172,7 +171,6 @@ def atomic_directory(final, force: bool = False):
 
 def write_png_atomic(path, image) -> None:
     """image: [H, W, 3] float RGB in [0, 1], or [H, W] uint8/uint16; written atomically."""
-    import numpy as np
     if image.dtype in (np.uint8, np.uint16):
         arr = image
     else:

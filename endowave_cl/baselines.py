@@ -32,12 +32,14 @@ so repeated evaluations (training-time, several runs in one process) compute it 
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Dict, List, Tuple
 
 import numpy as np
 
 from .data.flow import estimate_flow
 from .errors import EndowaveError
+from .metrics import frame_scores
 # the warps live in warp.py; these names are read from here too (tools, research, tests)
 from .warp import SAMPLERS, sample_displaced, splat_forward, two_flow_displacements, warp_backward  # noqa: F401
 
@@ -94,6 +96,8 @@ def dis_interpolations(image0: np.ndarray, image1: np.ndarray, a: float, method:
 def teacher_for(scene, progress: bool = False):
     """The in-between teacher of a loaded scene with the default settings (train/between.py
     Teacher; its flows come from the on-disk flow cache or are estimated once)."""
+    # train/ imported here, not at the top: evaluation.py imports this module and stays free of
+    # train/ (docs/ARCHITECTURE.md, tests/host/test_gaussians.py)
     from .train.between import Teacher
     from .train.config import TrainConfig
     return Teacher(scene, TrainConfig(), progress)
@@ -114,7 +118,6 @@ def baseline_images(scene, k: int, teacher=None) -> Dict[str, np.ndarray]:
 
 
 def _key(scene) -> tuple:
-    from pathlib import Path
     return (str(Path(scene.path).resolve()), scene.width, scene.height, tuple(scene.train_indices),
             tuple(scene.test_indices))
 
@@ -123,7 +126,6 @@ def baseline_scores(scene, with_lpips: bool = False) -> List[dict]:
     """Per test frame (in scene.test_indices order): {"index", "neighbours": [i0, i1], "fraction",
     "motion" (Teacher.motion of the neighbours), and each of NAMES: scores}, scores as metrics.frame_scores gives them.  Cached in memory
     per scene path, size and split; an entry without LPIPS is recomputed when LPIPS is asked for."""
-    from .metrics import frame_scores
     key = _key(scene)
     hit = _CACHE.get(key)
     if hit is not None and (hit["lpips"] or not with_lpips):

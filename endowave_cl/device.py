@@ -70,6 +70,9 @@ def oclgrind_mode() -> bool:
 
 
 def _cl():
+    # pyopencl is loaded on first device use, not at the top: cli.py imports runtime.py (and this
+    # module) for their error types before every command, and a command that runs no kernel
+    # (ingest, synth, export, ...) loads no OpenCL; a missing pyopencl is a one-line error here
     try:
         import pyopencl as cl
     except ImportError as e:  # pragma: no cover - install problem

@@ -9,7 +9,16 @@ import time
 from pathlib import Path
 from typing import Dict
 
+import cv2
 import numpy as np
+
+from .atomic import write_bytes_atomic, write_png_atomic
+from .baselines import LABELS, NAMES, baseline_scores, summarise
+from .data.flow import _fit_to_scene, estimate_flow, valid_mask
+from .errors import DataError
+from .lpips import lpips_available
+from .metrics import frame_scores, psnr, psnr_masked
+from .render import render
 
 # The error panel of the worst-frame image maps mean |render - ground truth| over RGB linearly onto
 # the colour map, saturating at this value (fixed, so that images of different runs compare).
@@ -47,9 +56,6 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
 
     with_train_fit: also "train_fit", the mean whole-image PSNR and masked PSNR of the model at
     its training frames (how closely it fits what it saw, beside what it shows in between)."""
-    from .lpips import lpips_available
-    from .metrics import frame_scores
-    from .render import render
     if not (isinstance(fps_runs, int) and fps_runs >= 0):
         raise ValueError(f"evaluate_run: fps_runs must be an integer >= 0 (0: no FPS), got {fps_runs!r}")
     use_lpips = bool(with_lpips and lpips_available())
@@ -75,7 +81,6 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
     m["flow"] = _flow_summary(rows) if flow_refs else None
     m["depth"] = _depth_summary(rows, scene.world_scale)
     if with_baselines:
-        from .baselines import NAMES, baseline_scores, summarise
         base = baseline_scores(scene, use_lpips)
         for row, b in zip(rows, base):
             row.update({"neighbours": b["neighbours"], "fraction": b["fraction"], "motion": b.get("motion")})
@@ -92,8 +97,6 @@ def evaluate_run(rt, params, scene, fps_runs: int = 10, with_lpips: bool = True,
 def train_fit(rt, params, scene) -> dict:
     """{"psnr", "psnr_masked", "frames"}: the model's mean whole-image and masked PSNR at the
     scene's training frames."""
-    from .metrics import psnr, psnr_masked
-    from .render import render
     vals, masked = [], []
     for k in scene.train_indices:
         f = scene.frames[k]
@@ -149,7 +152,6 @@ def _depth_summary(rows, world_scale: float):
 def depth_figures(rt, params, scene):
     """evaluate_run's depth figures alone ({"mae" in the depth files' units, "relative", "frames",
     "pixels"}, None without depth maps) over the test frames, without the rest of an evaluation."""
-    from .render import render
     rows = []
     for k in scene.test_indices:
         f = scene.frames[k]
@@ -169,8 +171,6 @@ def flow_references(scene) -> dict:
     end-point error there of OpenCV DIS run on frames k and k + 1 themselves (the estimator and
     preset of the pseudo ground truth), a reference of what a flow estimator that sees both frames
     gets.  Cached in memory per scene path, size and split."""
-    from .data.flow import _fit_to_scene, estimate_flow, valid_mask
-    from .errors import DataError
     gt_dir = Path(scene.path) / "gt_flow"
     if not gt_dir.is_dir():
         return {}
@@ -226,11 +226,9 @@ def _flow_summary(rows) -> dict:
 def per_frame_plot_png(m: dict, title: str = "") -> bytes:
     """PNG bytes: whole-image PSNR of each test frame over time, the model and (when evaluated)
     the baselines, with each curve's mean in the legend."""
-    import matplotlib
+    import matplotlib      # on first use: about 1 s to import, for the figures alone
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
-
-    from .baselines import LABELS
     rows = m["per_frame"]
     idx = [r["index"] for r in rows]
     fig = Figure(figsize=(7.0, 4.4), dpi=110)
@@ -264,7 +262,6 @@ def error_panel_image(pred: np.ndarray, frame) -> np.ndarray:
     render | error, full resolution.  The error is
     mean |render - gt| over RGB (tool pixels of a masked scene set to 0, as scored), through the
     inferno colour map, saturating at ERROR_FULL_SCALE."""
-    import cv2
     pred = np.clip(np.asarray(pred, np.float32), 0, 1)
     gt = frame.image
     err = np.abs(pred - gt).mean(-1)
@@ -285,7 +282,6 @@ LABEL_HEIGHT = 16   # px: the strip above the worst-frame panels that names them
 def _label_strip(width: int, panel: int, gap: int, labels) -> np.ndarray:
     """[LABEL_HEIGHT, width, 3] float RGB, white, each label in black at the left of its panel
     (shrunk to fit a narrow panel)."""
-    import cv2
     strip = np.full((LABEL_HEIGHT, width, 3), 255, np.uint8)
     for i, text in enumerate(labels):
         scale = 0.4
@@ -298,8 +294,6 @@ def _label_strip(width: int, panel: int, gap: int, labels) -> np.ndarray:
 
 def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[str, str]:
     """Write RUN/eval_per_frame.png and RUN/eval_worst.png (both atomically); return their paths."""
-    from .atomic import write_bytes_atomic, write_png_atomic
-    from .render import render
     run_dir = Path(run_dir)
     plot = run_dir / "eval_per_frame.png"
     write_bytes_atomic(plot, per_frame_plot_png(m, title))
@@ -312,7 +306,6 @@ def write_figures(run_dir, rt, params, scene, m: dict, title: str = "") -> Dict[
 
 
 def _render_fps(rt, params, f, runs: int) -> float:
-    from .render import render
     for _ in range(3):
         render(rt, params, f.camera, f.time, select=True)
     rt.queue.finish()

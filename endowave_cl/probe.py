@@ -30,7 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Optional
 
+from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
 from .ops.raster_options import RasterChoice, vec_options
+from .runtime import ENV_CACHE_DIR, _default_cache_dir, _source_with_includes_hash
 
 ENV_TIMEOUT = "ENDOWAVE_PROBE_TIMEOUT"
 ENV_PLANT = "ENDOWAVE_PROBE_PLANT"
@@ -49,19 +51,15 @@ class Verdict:
 
 
 def probe_dir() -> Path:
-    from .runtime import ENV_CACHE_DIR, _default_cache_dir
-    from . import env
     cache = env.get(ENV_CACHE_DIR)
     return Path(cache) / "probes" if cache else _default_cache_dir().parent / "probes"
 
 
 def _plant(vw: int) -> Optional[str]:
-    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
     return (env.get(ENV_PLANT) or {}).get(int(vw))
 
 
 def _key(rt, C: int, vw: int, bw: int) -> str:
-    from .runtime import _source_with_includes_hash
     h = hashlib.sha256()
     for f in KERNEL_FILES:
         _source_with_includes_hash(rt.kdir / f, h)
@@ -114,13 +112,12 @@ def _last_line(text: str) -> str:
 
 def run_child(rt, C: int, vw: int, bw: int, timeout: Optional[float] = None) -> Verdict:
     """Run the probe of one variant in a child process; never raises for what the child does."""
-    from . import env as envvars
-    timeout = float(timeout or envvars.get(ENV_TIMEOUT) or DEFAULT_TIMEOUT)
+    timeout = float(timeout or env.get(ENV_TIMEOUT) or DEFAULT_TIMEOUT)
     e = rt.entry
     pkg_root = str(Path(__file__).resolve().parent.parent)
-    env = dict(os.environ)
-    env["PYTHONPATH"] = pkg_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env["ENDOWAVE_CL_KERNELS"] = str(rt.kdir)
+    child_env = dict(os.environ)
+    child_env["PYTHONPATH"] = pkg_root + (os.pathsep + child_env["PYTHONPATH"] if child_env.get("PYTHONPATH") else "")
+    child_env["ENDOWAVE_CL_KERNELS"] = str(rt.kdir)
     cmd = [sys.executable, "-m", "endowave_cl.probe_child", "--device", f"{e.platform_index}:{e.device_index}",
            "--channels", str(C), "--lanes", str(vw), "--block-width", str(bw)]
     # The child shares the driver's own cache (PoCL: ~/.cache/pocl), so this process then finds the
@@ -128,7 +125,7 @@ def run_child(rt, C: int, vw: int, bw: int, timeout: Optional[float] = None) -> 
     # this process never builds.
     t0 = time.perf_counter()
     try:
-        p = subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+        p = subprocess.run(cmd, env=child_env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
                            timeout=timeout, start_new_session=True)
     except subprocess.TimeoutExpired:
         return Verdict(False, f"no answer within {timeout:.0f} s (a hang while building?)",

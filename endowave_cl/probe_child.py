@@ -3,21 +3,26 @@ build a vector rasterizer variant, ask for its binaries, run it on a tiny scene 
 the scalar kernels; the last line printed is the verdict."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
 import time
+import warnings
 from typing import Optional
 
+import numpy as np
+import pyopencl.array as cla
+
+from .ops.rasterize import RasterChoice, rasterize, rasterize_bwd, vec_bwd_options, vec_options
 from .probe import RESULT_TAG, _last_line, _plant
+from .reference.binning import bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid, tile_ranges_ref
+from .runtime import KernelBuildError, Runtime, choose_device
 
 
 def _tiny_scene(C: int, seed: int = 7):
     """24 random screen-space Gaussians over a 36 x 20 image (3 x 2 tiles, partial ones included),
     with their depth-sorted tile lists (numpy binning reference)."""
-    import numpy as np
-    from .reference.binning import (bin_gaussians_ref, bin_offsets_ref, sort_pairs_ref, tile_grid,
-                                    tile_ranges_ref)
     rng = np.random.default_rng(seed)
     n, w, h = 24, 36, 20
     means = np.stack([rng.uniform(-2, w + 2, n), rng.uniform(-2, h + 2, n)], 1)
@@ -49,7 +54,6 @@ def _tiny_scene(C: int, seed: int = 7):
 
 
 def _mismatch(name: str, got, want, rtol: float) -> Optional[str]:
-    import numpy as np
     if got.shape != want.shape or not np.isfinite(got).all():
         return f"{name}: wrong shape or non-finite values"
     scale = max(float(np.abs(want).max()), 1e-6)
@@ -62,10 +66,6 @@ def _mismatch(name: str, got, want, rtol: float) -> Optional[str]:
 def probe_variant(rt, C: int, vw: int, bw: int):
     """Build the vector variant, ask for its binaries, run it on the tiny scene and compare with the
     scalar kernels.  (kind, reason): ("ok", "ok"), ("build", ...) or ("wrong", ...)."""
-    import numpy as np
-    import pyopencl.array as cla
-    from .ops.rasterize import (RasterChoice, rasterize, rasterize_bwd, vec_bwd_options, vec_options)
-    from .runtime import KernelBuildError
     plant = _plant(vw)
     if plant == "abort":
         os.abort()
@@ -112,8 +112,6 @@ def probe_variant(rt, C: int, vw: int, bw: int):
 
 
 def main(argv=None) -> int:
-    import argparse
-    import warnings
     warnings.filterwarnings("ignore", message="Non-empty compiler output")
     ap = argparse.ArgumentParser(prog="python -m endowave_cl.probe_child",
                                  description="Probe one vector rasterizer variant (run by endowave-cl "
@@ -123,7 +121,6 @@ def main(argv=None) -> int:
     ap.add_argument("--lanes", type=int, required=True)
     ap.add_argument("--block-width", type=int, required=True)
     a = ap.parse_args(argv)
-    from .runtime import Runtime, choose_device
     rt = Runtime(choose_device(a.device))
     try:
         kind, reason = probe_variant(rt, a.channels, a.lanes, a.block_width)

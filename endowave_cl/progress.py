@@ -14,6 +14,10 @@ import sys
 import time
 from typing import Iterable, Optional
 
+from tqdm import tqdm
+
+from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
+
 ENV_MODE = "ENDOWAVE_PROGRESS"
 ENV_INTERVAL = "ENDOWAVE_PROGRESS_INTERVAL"
 DEFAULT_INTERVAL = 5.0
@@ -26,11 +30,6 @@ def _fmt_time(s: float) -> str:
     if s >= 60:
         return f"{s // 60}m{s % 60:02d}s"
     return f"{s}s"
-
-
-def _env_get(name):
-    from . import env      # every ENDOWAVE_* variable is parsed there, with a named error
-    return env.get(name)
 
 
 class PlainProgress:
@@ -47,7 +46,7 @@ class PlainProgress:
         self.desc, self.unit, self.disable = desc, unit, disable
         self.file = file
         self.interval = float(interval if interval is not None else
-                              _env_get(ENV_INTERVAL) or DEFAULT_INTERVAL)
+                              env.get(ENV_INTERVAL) or DEFAULT_INTERVAL)
         self.clock = clock
         self.t0 = self.last = self.t_begin = clock()
         self.postfix = ""
@@ -148,7 +147,7 @@ def restart_rate(bar) -> None:
 
 
 def plain_wanted() -> bool:
-    mode = _env_get(ENV_MODE)
+    mode = env.get(ENV_MODE)
     if mode in ("plain", "bar"):
         return mode == "plain"
     try:
@@ -161,9 +160,8 @@ def progress(iterable: Optional[Iterable] = None, total: Optional[int] = None, i
              desc: str = "", unit: str = "it", disable: bool = False, **tqdm_kw):
     """A tqdm bar when stdout is a terminal, else a PlainProgress; the same calls work on both.
     tqdm_kw (dynamic_ncols, ...) go to tqdm only."""
-    if _env_get(ENV_MODE) == "off":
+    if env.get(ENV_MODE) == "off":
         disable = True
     if plain_wanted():
         return PlainProgress(iterable, total=total, initial=initial, desc=desc, unit=unit, disable=disable)
-    from tqdm import tqdm
     return tqdm(iterable, total=total, initial=initial, desc=desc, unit=unit, disable=disable, **tqdm_kw)

@@ -2,10 +2,14 @@
 from __future__ import annotations
 
 import json
+import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from .atomic import write_png_atomic  # noqa: F401  (moved to atomic.py; re-exported for older callers)
+from .checkpoint import load_newest_good_checkpoint
+from .data.scene import apply_split, load_scene
 from .errors import EndowaveError
 
 
@@ -20,10 +24,9 @@ class LoadedRun:
 
 
 def load_run(run_dir, scene_override=None) -> LoadedRun:
-    from .data.scene import apply_split, load_scene
-    import sys
+    # train/ imported here, not at the top: export, eval and the viewer import this module and
+    # stay free of train/ (docs/ARCHITECTURE.md, tests/host/test_gaussians.py)
     from .train.config import TrainConfig, drop_removed
-    from .checkpoint import load_newest_good_checkpoint
     run = Path(run_dir)
     cfg_file = run / "config.json"
     if not cfg_file.is_file():
@@ -58,14 +61,13 @@ def check_run_scene(state, scene, ck, remedy: str = "pass the run's own scene wi
                                                    "this one") -> None:
     """Refuse a scene whose frames are not the ones the run was trained on (--scene OTHER, or the
     scene folder regenerated in place): scores, renders and PLYs against them would be wrong."""
-    from .train.run_folder import check_same_scene
+    from .train.run_folder import check_same_scene    # as in load_run: not at the top
     check_same_scene(state.get("extra", {}), scene, ck,
                      remedy=f"evaluating, rendering or exporting against it would be wrong; {remedy}")
 
 
 def run_world_scale(state, where) -> float:
     """The scene units a checkpoint was trained in (data/scene.py world_scale); 1.0 before they existed."""
-    import math
     raw = state.get("extra", {}).get("world_scale", 1.0)
     try:
         v = float(raw)

@@ -106,7 +106,7 @@ class Runtime:
         than the kernel on PoCL, which allocates and faults in new buffers on first use).  Pass it
         as ``allocator=`` to pyopencl.array.empty; pooled buffers are not zeroed."""
         if self._pool is None:
-            from pyopencl.tools import ImmediateAllocator, MemoryPool
+            from pyopencl.tools import ImmediateAllocator, MemoryPool   # on first device use (device._cl)
             self._pool = MemoryPool(ImmediateAllocator(self.queue))
         return self._pool
 
@@ -312,7 +312,7 @@ def new_array(queue, shape: Tuple[int, ...], dtype, allocator=None, data=None, o
     (data None), or a view of data at byte offset (sharing ``events``).  Uses pyopencl's own fast
     constructor path, which skips the shape checks that make ``Array(...)`` cost tens of
     microseconds; falls back to the checked constructor where a pyopencl lacks it."""
-    import pyopencl.array as cla
+    import pyopencl.array as cla     # on first device use (device._cl): cli.py imports this module
     dtype = np.dtype(dtype)
     size = math.prod(shape)
     if _FAST_ARRAYS[0]:

@@ -11,7 +11,10 @@ import os
 from pathlib import Path
 from typing import Iterable, Optional, Tuple
 
+import cv2
 import numpy as np
+
+from .atomic import default_file_mode, temp_prefix
 
 H264_CRF = 18          # visually lossless for renders; libx264's default is 23
 
@@ -27,7 +30,7 @@ def _even(frame: np.ndarray) -> np.ndarray:
 
 def h264_available() -> bool:
     try:
-        import imageio_ffmpeg
+        import imageio_ffmpeg     # where it is used: without it render writes mp4v (write_video)
         imageio_ffmpeg.get_ffmpeg_exe()
         return True
     except Exception:  # noqa: BLE001  not installed, or no binary for this platform
@@ -50,7 +53,6 @@ def _write_h264(tmp: Path, frames, fps: float, size: Tuple[int, int]) -> None:
 
 
 def _write_mp4v(tmp: Path, frames, fps: float, size: Tuple[int, int]) -> None:
-    import cv2
     vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
     try:
         for fr in frames:
@@ -63,7 +65,6 @@ def write_video(path, frames: Iterable[np.ndarray], fps: float, codec: Optional[
     """Write RGB uint8 frames [H, W, 3] (all one size) to ``path`` (.mp4) atomically; returns the
     codec used: "h264", or "mp4v" (OpenCV's MPEG-4 Part 2) when imageio-ffmpeg is missing or
     ``codec="mp4v"``.  Raises OSError when nothing could be written."""
-    from .atomic import default_file_mode, temp_prefix
     frames = list(frames)
     if not frames:
         raise ValueError("no frames")
@@ -86,7 +87,6 @@ def write_video(path, frames: Iterable[np.ndarray], fps: float, codec: Optional[
 
 def video_codec(path) -> str:
     """The codec name of a video's first stream as OpenCV reports it (e.g. "h264"), "" if unreadable."""
-    import cv2
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
@@ -99,7 +99,6 @@ def video_codec(path) -> str:
 
 def depth_colour(depth: np.ndarray, valid: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """[H, W, 3] uint8 RGB: the turbo colour map, red = near (lo), blue = far (hi), black = no depth."""
-    import cv2
     span = max(hi - lo, 1e-12)
     u = np.clip((hi - depth) / span, 0.0, 1.0)
     bgr = cv2.applyColorMap((u * 255 + 0.5).astype(np.uint8), cv2.COLORMAP_TURBO)

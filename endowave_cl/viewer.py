@@ -10,12 +10,17 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 
 from .camera import Camera
+from .export_ply import matrix_to_quaternion
+from .gaussians import MARGINAL_CULL, TEASH_PERIOD, covariance_4d, sh_basis_terms, upload
+from .render import render
 
 MODES = ("colour", "depth", "flow")   # what the main pane shows
 DEPTH_PERCENTILES = (2.0, 98.0)       # the depth colour map spans these percentiles of the first depth view
@@ -47,7 +52,6 @@ def quat_to_matrix(wxyz) -> np.ndarray:
 
 def matrix_to_quat(R) -> np.ndarray:
     """[3, 3] rotation matrix -> unit quaternion (w, x, y, z), w >= 0."""
-    from .export_ply import matrix_to_quaternion
     q = matrix_to_quaternion(np.asarray(R, np.float64)[None])[0]
     return q if q[0] >= 0 else -q
 
@@ -155,7 +159,6 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 def depth_image(depth: np.ndarray, alpha: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Expected depth (depth / alpha) through the turbo colour map, near = red end, far = blue end;
     pixels the Gaussians hardly cover are black.  uint8 RGB [H, W, 3]."""
-    import cv2
     d = depth / np.maximum(alpha, 1e-6)
     s = np.clip((hi - d) / max(hi - lo, 1e-12), 0.0, 1.0)            # 1 = near
     rgb = cv2.applyColorMap((s * 255 + 0.5).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
@@ -175,7 +178,6 @@ def depth_range(depth: np.ndarray, alpha: np.ndarray) -> Tuple[float, float]:
 def flow_image(flow: np.ndarray, alpha: np.ndarray, scale: float) -> np.ndarray:
     """Flow [H, W, 2] in pixels on the usual colour wheel: hue = direction, saturation = magnitude
     / scale (white = still, saturated at ``scale`` pixels); uncovered pixels black.  uint8 RGB."""
-    import cv2
     mag = np.hypot(flow[..., 0], flow[..., 1])
     ang = (np.degrees(np.arctan2(flow[..., 1], flow[..., 0])) % 360.0) / 2.0     # OpenCV hue: 0..180
     hsv = np.stack([ang, np.clip(mag / max(scale, 1e-12), 0, 1) * 255, np.full_like(mag, 255)], -1)
@@ -186,7 +188,6 @@ def flow_image(flow: np.ndarray, alpha: np.ndarray, scale: float) -> np.ndarray:
 def error_image(pred: np.ndarray, gt: np.ndarray, mask: Optional[np.ndarray]) -> np.ndarray:
     """Mean |render - ground truth| over RGB through the inferno map, saturating at
     ERROR_FULL_SCALE; tool pixels (mask 0) count as 0, as eval scores them.  uint8 RGB."""
-    import cv2
     err = np.abs(np.clip(pred, 0, 1) - gt).mean(-1)
     if mask is not None:
         err = err * mask
@@ -211,7 +212,6 @@ def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
     """Write ``text`` in the top-left corner (white on a dark box), scaled to the pane."""
-    import cv2
     img = np.ascontiguousarray(img)
     s = max(0.3, img.shape[0] / 600.0)
     (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, s, 1)
@@ -222,7 +222,6 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
 
 def _fit(img: np.ndarray, w: int, h: int) -> np.ndarray:
     """Letterbox ``img`` into a w x h black box, aspect kept."""
-    import cv2
     ih, iw = img.shape[:2]
     s = min(w / iw, h / ih)
     nw, nh = max(1, int(round(iw * s))), max(1, int(round(ih * s)))
@@ -259,7 +258,6 @@ def compose(main: np.ndarray, side: List[Tuple[str, np.ndarray]], width: int, he
 def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
     """reference/project.py's sh_basis in numpy: unit directions [N, 3] -> [N, (degree+1)^2].  The
     torch one is several times slower for one call on a CPU."""
-    from .gaussians import sh_basis_terms
     return np.stack(sh_basis_terms(dirs[:, 0], dirs[:, 1], dirs[:, 2], degree), -1)
 
 
@@ -292,7 +290,6 @@ class ViewerModel:
     the device queue is shared)."""
 
     def __init__(self, loaded, rt):
-        from .gaussians import upload
         self.run = loaded
         self.rt = rt
         self.scene = loaded.scene
@@ -337,7 +334,6 @@ class ViewerModel:
         return "test" if k in self.test else "train"
 
     def render_host(self, cam: Camera, t: float, t_flow: Optional[float] = None) -> Dict[str, np.ndarray]:
-        from .render import render
         with self.lock:
             return render(self.rt, self.params, cam, float(t), t_flow, select=True).host()
 
@@ -365,7 +361,6 @@ class ViewerModel:
 
     def view(self, pose, st: ViewState, canvas_aspect: float, tol: float) -> ViewResult:
         """Render what one client sees: pose = (wxyz, position, fov_y) of its browser camera."""
-        import time
         t0 = time.perf_counter()
         W, H = render_size(st.height, canvas_aspect)
         k = self.frame_at(st.t, tol)
@@ -400,7 +395,6 @@ class ViewerModel:
         spatial covariance Sxx - sxt sxt^T / stt, the velocity sxt / stt and stt (export_ply.py's
         gaussians_at evaluates the same formulas, and the eigen-decomposition a PLY needs, per call)."""
         if getattr(self, "_motion_cache", None) is None:
-            from .gaussians import covariance_4d
             sigma = covariance_4d(self.gaussians)                       # [N, 4, 4] float64
             stt = sigma[:, 3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -416,7 +410,6 @@ class ViewerModel:
         temporal marginal; Gaussians below MARGINAL_CULL dropped, as the rasterizer and the PLY
         export drop them) and colours [M, 3] (TEASH colour at t, seen from ``eye``: a splat renderer
         takes one colour per Gaussian, not spherical harmonics)."""
-        from .gaussians import MARGINAL_CULL, TEASH_PERIOD
         g = self.gaussians
         means, cov, vel, stt, ok = self._motion()
         dt = float(t) - means[:, 3]

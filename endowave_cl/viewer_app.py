@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import errno
 import io
 import math
 import socket
@@ -45,7 +46,6 @@ MAX_MARK_LABELS = 9               # frame-time marks beyond this many are drawn 
 def port_problem(host: str, port: int) -> Optional[str]:
     """Why ``port`` cannot be listened on at ``host`` now (bound with SO_REUSEADDR, as the server
     binds), or None when it can."""
-    import errno
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except OSError as e:

@@ -20,7 +20,9 @@ retried: the runner reports it.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -30,11 +32,10 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from ..errors import EndowaveError
-from .tasks import RESULT_PREFIX
+from .tasks import RESULT_PREFIX, run_task
 
 
 def ray_available() -> bool:
-    import importlib.util
     return importlib.util.find_spec("ray") is not None
 
 
@@ -46,7 +47,6 @@ def _package_parent() -> str:
 
 def _run_task_on_ray_node(spec: dict) -> dict:
     """tasks.run_task in a Ray worker; the result also names the Ray node (its id) that ran it."""
-    from .tasks import run_task
     res = run_task(spec)
     try:
         import ray
@@ -65,7 +65,6 @@ class RayExecutor:
     name = "ray"
 
     def __init__(self, address: Optional[str], cpus: Optional[int], resources: dict):
-        import logging
         import ray
         self.ray = ray
         self.resources = resources

@@ -26,13 +26,15 @@ from __future__ import annotations
 
 import fnmatch
 import glob
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
+from ..commands.render import FPS_RANGE      # what render accepts: checked here, before any stage runs
 from ..errors import EndowaveError
-from ..train.config import read_toml
+from ..train.config import TrainConfig, read_toml
 
 STAGES = ("flow", "train", "eval", "render", "export")   # also the order a scene goes through them
 DEFAULT_STAGES = ("flow", "train", "eval")
@@ -102,7 +104,6 @@ MIN_TASK_CPUS = 0.01     # ... and tasks per core (1e-300 made a pool of 1e300 w
 
 
 def _check_ranges(src: str, m: Manifest) -> None:
-    import math
     r = m.resources
     if not (math.isfinite(r["cpus"]) and r["cpus"] > 0):
         raise EndowaveError(f"{src}: key 'resources.cpus' must be > 0, got {r['cpus']:g}")
@@ -116,7 +117,6 @@ def _check_ranges(src: str, m: Manifest) -> None:
         raise EndowaveError(f"{src}: key 'resources.retries' must be >= 0, got {r['retries']}")
     if m.eval["fps_runs"] < 0:
         raise EndowaveError(f"{src}: key 'eval.fps_runs' must be >= 0, got {m.eval['fps_runs']}")
-    from ..commands.render import FPS_RANGE      # what render accepts: checked here, before any stage runs
     if not (math.isfinite(m.render["fps"]) and FPS_RANGE[0] <= m.render["fps"] <= FPS_RANGE[1]):
         raise EndowaveError(f"{src}: key 'render.fps' must be from {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g}, "
                             f"got {m.render['fps']:g}")
@@ -171,7 +171,6 @@ def _scenes(src: str, base: Path, data: dict) -> List[Tuple[str, Path]]:
 
 def _settings(src: str, where: str, raw) -> Dict[str, Any]:
     """A table of TrainConfig keys, checked (unknown keys, types, ranges) by TrainConfig itself."""
-    from ..train.config import TrainConfig
     if not isinstance(raw, dict):
         raise EndowaveError(f"{src}: '{where}' must be a table of training settings, got {type(raw).__name__}")
     TrainConfig.from_dict(raw, source=f"{src} [{where}]")
@@ -223,7 +222,6 @@ def load_manifest(path) -> Manifest:
 
 def setting(scene: Scene, key: str):
     """The effective value of a TrainConfig key for this scene (its setting, else the default)."""
-    from ..train.config import TrainConfig
     return scene.settings.get(key, getattr(TrainConfig(), key))
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, TextIO, Tuple
 
 from .manifest import Manifest
+from .report import write_report
 from . import tasks as T
 
 AFTER = {"flow": None, "train": "flow", "eval": "train", "render": "train", "export": "train"}
@@ -248,12 +249,10 @@ class Runner:
             # the report of what is complete, and let the command line report the interruption
             self.say("batch: interrupted; stopping the running tasks (run the manifest again to go on)")
             self.ex.shutdown()
-            from .report import write_report
             write_report(self.m, None)
             raise
         finally:
             self.ex.shutdown()
-        from .report import write_report
         result.report = write_report(self.m, self.tasks)
         result.seconds = time.time() - t0
         self.say(self._overall_line(t0))

@@ -35,6 +35,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -42,8 +45,10 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
 from ..errors import DataError
 from ..atomic import atomic_directory
+from ..progress import progress as progress_bar
 from .flo import read_flow_file
 
 METHODS = ("dis", "dis_fine", "farneback", "deepflow", "tvl1")
@@ -185,7 +190,6 @@ def training_pairs(scene):
 
 # ---------------------------------------------------------------------------------------------
 def default_cache_root() -> Path:
-    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
     cache = env.get("ENDOWAVE_CL_CACHE")
     if cache:
         return Path(cache) / "flow"
@@ -251,9 +255,6 @@ def _pair_file(k, k2):
 
 
 def _load_cached(entry: Path, pairs):
-    import sys
-    import zipfile
-    import zlib
     if not (entry / "manifest.json").is_file():
         return None
     out = {}
@@ -280,7 +281,6 @@ def _load_cached(entry: Path, pairs):
 def _store(entry: Path, result, meta) -> bool:
     """Write the cache entry; False (with a warning naming the folder) when it cannot be written:
     the flow just computed is used all the same."""
-    import sys
     try:
         _store_entry(entry, result, meta)
         return True
@@ -379,7 +379,6 @@ def flow_for_scene(scene, method: str = "dis", cache: bool = True, progress: boo
             result.method, result.cache_path, result.computed = method, entry, False
             return result
 
-    from ..progress import progress as progress_bar
     estimator = _make_estimator(method)
     work = estimation_size(scene.width, scene.height, max_pixels)
     grey = {i: _grey_at(scene.frames[i].image, work) for i in sorted({i for p in pairs for i in p})}

@@ -1,6 +1,7 @@
 """Reading PNG frames, depth maps and tool masks with errors that name the file."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -14,7 +15,6 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 def natural_key(name: str):
     """Sort key that orders the numbers in a name by value: 0, 1, 2, ..., 10, 11 (not 0, 1, 10, 11,
     2); zero-padded names sort as before.  The name itself breaks ties (01 / 1)."""
-    import re
     parts = re.split(r"(\d+)", name)
     return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
 

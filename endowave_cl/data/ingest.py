@@ -18,15 +18,22 @@ The scene appears complete under OUT or not at all (atomic_directory).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterator, List, Optional, Tuple
 
+import cv2
 import numpy as np
 
+from ..atomic import atomic_directory, save_png, write_bytes_atomic
 from ..errors import DataError
+from ..progress import progress as progress_bar
+from .images import _decode, list_images
+from .scene import split_indices
 
 DEFAULT_FOV_DEG = 60.0        # horizontal; EndoNeRF's pulling video has 58.6 (640 px, f = 569.5)
 DEFAULT_NEAR, DEFAULT_FAR = 1.0, 100.0   # bounds without depth, in no particular unit (the loader
@@ -101,10 +108,6 @@ def check_options(o: IngestOptions) -> None:
 
 # ---------------------------------------------------------------------------------------- sources
 def _quiet_cv2():
-    import contextlib
-
-    import cv2
-
     @contextlib.contextmanager
     def quiet():
         level = cv2.utils.logging.getLogLevel()
@@ -119,13 +122,11 @@ def _quiet_cv2():
 def _quiet_ffmpeg() -> None:
     """FFmpeg's own messages (\"moov atom not found\") off: a broken video gets one line from us.
     OpenCV reads the variable when it opens a capture; a value the user set is kept."""
-    import os
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 
 def _video_frames(path: Path, o: IngestOptions) -> Iterator[Tuple[int, np.ndarray]]:
     """(source index, BGR uint8 frame) of the chosen frames of a video file."""
-    import cv2
     _quiet_ffmpeg()
     with _quiet_cv2():
         cap = cv2.VideoCapture(str(path))
@@ -153,9 +154,6 @@ def _video_frames(path: Path, o: IngestOptions) -> Iterator[Tuple[int, np.ndarra
 
 
 def _folder_frames(path: Path, o: IngestOptions) -> Iterator[Tuple[int, np.ndarray]]:
-    import cv2
-
-    from .images import _decode, list_images
     files = list_images(path)
     if not files:
         raise DataError(f"{path}: no .png / .jpg frames in this folder")
@@ -225,7 +223,6 @@ def focal_pixels(w_src: int, w_out: int, o: IngestOptions) -> Tuple[float, str]:
 # ---------------------------------------------------------------------------------------- stereo
 def make_matcher(width: int, max_disparity: Optional[int]):
     """OpenCV semi-global block matching on grey frames (3-way SGBM, 5x5 blocks)."""
-    import cv2
     nd = max_disparity or max(16, int(math.ceil(width / 4 / 16.0)) * 16)
     block = 5
     return cv2.StereoSGBM_create(minDisparity=0, numDisparities=nd, blockSize=block,
@@ -236,7 +233,6 @@ def make_matcher(width: int, max_disparity: Optional[int]):
 
 def stereo_disparity(matcher, left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """[H, W] float32 disparity in pixels of the left frame (<= 0: no match)."""
-    import cv2
     gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
     gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
     return matcher.compute(gl, gr).astype(np.float32) / 16.0
@@ -256,7 +252,6 @@ def _side_files(folder: Optional[str], what: str, n_source: Optional[int], chose
     file per chosen frame or one per source frame (then the same frames are taken)."""
     if folder is None:
         return None
-    from .images import list_images
     p = Path(folder)
     if not p.is_dir():
         raise DataError(f"{p}: the {what} folder does not exist")
@@ -271,9 +266,6 @@ def _side_files(folder: Optional[str], what: str, n_source: Optional[int], chose
 
 
 def _read_side(path: Path, src_size, out_size, what: str) -> np.ndarray:
-    import cv2
-
-    from .images import _decode
     img = _decode(path, cv2.IMREAD_UNCHANGED)
     if img.ndim == 3:
         img = img[:, :, :3].max(axis=2) if what == "mask" else img[:, :, 0]
@@ -305,9 +297,7 @@ class IngestResult:
 def _count_source_frames(source: Path) -> Optional[int]:
     """Frames in the source: the folder's image count, or the count a video announces (None if not)."""
     if source.is_dir():
-        from .images import list_images
         return len(list_images(source))
-    import cv2
     _quiet_ffmpeg()
     with _quiet_cv2():
         cap = cv2.VideoCapture(str(source))
@@ -321,10 +311,6 @@ def _count_source_frames(source: Path) -> Optional[int]:
 def ingest(source, out, options: Optional[IngestOptions] = None, force: bool = False,
            log=print, progress: bool = True) -> IngestResult:
     """Write the EndoNeRF-layout scene of ``source`` (a video file or a folder of frames) to ``out``."""
-    import cv2
-
-    from ..atomic import atomic_directory, save_png, write_bytes_atomic
-    from .scene import split_indices
     o = options or IngestOptions()
     check_options(o)
     source, out = Path(source), Path(out)
@@ -335,7 +321,6 @@ def ingest(source, out, options: Optional[IngestOptions] = None, force: bool = F
     n_source = _count_source_frames(source) if (o.masks or o.depth) else None
     masks_dir = Path(o.masks) if o.masks else None
     depth_dir = Path(o.depth) if o.depth else None
-    from ..progress import progress as progress_bar
     with atomic_directory(out, force=force) as tmp:
         (tmp / "images").mkdir()
         chosen: List[int] = []

@@ -15,6 +15,7 @@ Frames of the three folders are paired by sorted order and their counts must agr
 from __future__ import annotations
 
 import json
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
@@ -134,7 +135,6 @@ def check_supervised(scene, scored: str = "test") -> None:
     a tissue pixel (PSNR and SSIM are taken over tissue), and some training frame needs one."""
     if not scene.has_masks:
         return
-    from .images import list_images
     files = list_images(Path(scene.path) / "masks")
     where = f" (downscale {scene.downscale:g})" if scene.downscale != 1 else ""
     for i in scene.test_indices:
@@ -229,7 +229,6 @@ def _common_size(images) -> tuple:
     """(width, height) most of the images have (ties: the earliest), so that an odd one out is
     blamed whichever frame it is, the first included.  PNG sizes come from the header; other
     files (or damaged headers) are decoded."""
-    from collections import Counter
     sizes = []
     for p in images:
         size = _png_size(p)

@@ -288,7 +288,6 @@ def make_synthetic_scene(out, width: int = 160, height: int = 128, frames: int =
     ``out`` must be absent or empty unless ``force``; nothing is half-written (temporary folder
     + rename).  Raises DataError for a non-empty ``out`` and ValueError for bad parameters.
     """
-    import math
     if width < 16 or height < 16:
         raise ValueError(f"--width / --height {width}x{height} is too small (at least 16x16)")
     if max(width, height) > MAX_SIDE or width * height * frames > MAX_PIXELS:

@@ -25,6 +25,7 @@ import math
 from typing import Dict, Mapping, Optional, Tuple
 
 import numpy as np
+import pyopencl.array as cla
 
 from ..errors import EndowaveError
 from ..gaussians import PARAM_NAMES
@@ -116,7 +117,6 @@ class DeviceAdam:
 
     def __init__(self, rt, params: Dict[str, "object"], lrs: Mapping[str, float],
                  betas: Tuple[float, float] = (BETA1, BETA2), eps: float = ADAM_EPS):
-        import pyopencl.array as cla
         self.rt = rt
         self._cla = cla
         self.betas = (float(betas[0]), float(betas[1]))

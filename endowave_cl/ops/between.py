@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
+import pyopencl.array as cla
 
 from .util import WORK_GROUP, f32_literal
 
@@ -59,7 +60,6 @@ class Frame:
 
 def frame_on_device(rt, image: np.ndarray, mask: Optional[np.ndarray] = None) -> Frame:
     """A Frame of image [H, W, 3] and mask [H, W] (or None), uploaded."""
-    import pyopencl.array as cla
     image = np.asarray(image, np.float32)
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"between: a frame image must be [H, W, 3], got {image.shape}")

@@ -12,8 +12,10 @@ from typing import Dict, Optional
 import numpy as np
 import pyopencl.array as cla
 
+from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
 from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
 from ..layout import ALPHA_MIN, CAM_SIZE, CHANNELS, tile_grid
+from .rasterize import VEC_WIDTH, raster_choice, simt_device
 from .util import f32_literal
 
 WORK_GROUP = 64        # work-items per group (scalar variant); one work-item per Gaussian
@@ -37,14 +39,12 @@ def project_lanes(rt) -> int:
     $ENDOWAVE_PROJECT_VARIANT / $ENDOWAVE_PROJECT_VW force a variant / lane count; else devices
     that report a SIMT width run the scalar kernels and the others the vector ones at the
     rasterizer's lane count (scalar where the rasterizer runs scalar)."""
-    from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
     v = env.get(ENV_VARIANT)
     w = env.get(ENV_VEC_WIDTH)
     if v == "scalar":
         return 0
     if w:
         return w
-    from .rasterize import VEC_WIDTH, raster_choice, simt_device
     if v != "vector" and simt_device(rt):
         return 0
     ch = raster_choice(rt)

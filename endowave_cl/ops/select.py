@@ -20,6 +20,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from .. import env
 from ..gaussians import MARGINAL_CULL, PARAM_NAMES
 from ..layout import ALPHA_MIN
 from .project import launch_lanes
@@ -35,7 +36,6 @@ LIVE_SLACK = 0.99    # LIVE_SLACK in cl/select.cl: rows down to 0.99 x MARGINAL_
 
 def select_enabled() -> bool:
     """False when $ENDOWAVE_NO_SELECT asks training to render every Gaussian (the same results)."""
-    from .. import env
     return not env.flag(ENV_NO_SELECT)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 from typing import Dict, Mapping
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
 
 WORK_GROUP = 128
 NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (-DNF_RUN of cl/util.cl)
@@ -24,7 +26,6 @@ def nonfinite_flag(rt, arrays, flag=None):
     (gcol_c Y_k) cos_f are non-finite exactly when a factor is, since every factor enters some
     product (a NaN or Inf factor makes it NaN or Inf, 0 x Inf included) and |Y_k| <= 1, |cos_f| <= 1,
     so finite factors cannot overflow."""
-    import pyopencl.array as cla
     if flag is None:
         flag = cla.zeros(rt.queue, (1,), np.int32)
     k = rt.kernel("util.cl", "any_nonfinite_f32", [f"-DNF_RUN={NONFINITE_RUN}"])
@@ -58,8 +59,6 @@ def read_back(rt, arrays: Mapping[str, object]) -> Dict[str, np.ndarray]:
     """Host copies of several small device arrays with one blocking read: each is copied (on the
     device, in queue order) into one staging buffer, which is read once.  {name: numpy array of
     the same dtype and shape}; empty arrays come back empty."""
-    import pyopencl as cl
-    import pyopencl.array as cla
     layout, total = [], 0
     for name, a in arrays.items():
         layout.append((name, a, total))

@@ -9,14 +9,13 @@ from typing import Dict, Optional
 
 from ..camera import Camera
 from ..layout import CHANNELS, DEPTH, FLOW, RGB
+from .project import project4d_ref
+from .rasterize import rasterize_dense_ref
 
 
 def render_ref(params: Dict[str, "object"], camera: Camera, t: float, t_flow: Optional[float] = None) -> Dict:
     """params: dict of torch tensors in the gaussians.py layout; returns image [H,W,3], depth [H,W],
     flow [H,W,2], alpha [H,W] as torch tensors (differentiable)."""
-    from .project import project4d_ref
-    from .rasterize import rasterize_dense_ref
-
     p = project4d_ref(params, camera, t, t_flow, channels=CHANNELS)
     out, alpha, _T, _last = rasterize_dense_ref(p["means2d"], p["conic"], p["opac"], p["features"], p["depth"],
                                                 p["rect"], camera.width, camera.height)

@@ -75,15 +75,19 @@ import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 
 from .. import env
+from ..data.flow import flow_for_scene
 from ..warp import sample_displaced, splat_forward
+from .between_device import DeviceTarget
 # the in-between modes' names are settings' values, listed in config.py (read from here too)
 from .config import FUSE_MODES, PATHS, S_DISTRIBUTIONS, between_flow_methods  # noqa: F401
+from .device_losses import device_targets, prepare_targets
 
 
 # how the frames are sampled between pixels (warp.SAMPLERS), in every warp and push of the target:
@@ -192,7 +196,6 @@ def bend_around(scene, sources: Sequence[object], methods: Sequence[str], flows_
     in between_target's order, methods their estimators' names; flows_of(a, b, method) -> [H, W, 2],
     frame a's flow to frame b.  The frames beyond the pair are the nearest training frames before its
     first and after its second frame with the same camera; fused: bend the fused flows too."""
-    from types import SimpleNamespace
     src, dst = sources[0].src, sources[0].dst
     before, after = frames_beyond(scene, src, dst)
     made = {(src, dst): list(sources)}
@@ -493,7 +496,6 @@ class BetweenSampler:
     def device_target(self):
         """A between_device.DeviceTarget of this sampler on its runtime: the pairs' frames and
         flows uploaded, their fused flows and Bends made."""
-        from .between_device import DeviceTarget
         return DeviceTarget(self.rt, self, FUSE_RADIUS, FUSE_TAU, SPLAT_MIN_WEIGHT, pair_bend)
 
     def extra(self, pair) -> List[object]:
@@ -511,7 +513,6 @@ class BetweenSampler:
         blended into the target with model_weight (between_target); it is called first at the
         step's own time, then (model_splat) at the pair's two frames' times, unless their motion
         rendered within motion_refresh steps before ``step`` is kept."""
-        from .device_losses import device_targets, prepare_targets
         index = int(rng.integers(len(self.pairs)))
         pair = self.pairs[index]
         s = level_fraction(draw_fraction(rng, self.s_distribution), self.levels)
@@ -603,7 +604,6 @@ def between_flows(scene, cfg, progress: bool = False) -> Tuple[Dict[int, object]
     """(flows, extra_flows): the training pairs' flows of cfg.flow_method and of the between_flows
     estimators ({k: FlowPair} each, cached on disk), as the in-between targets fuse them.  A scene
     that brings its own flow (flow/) has no further estimators: every method reads that flow."""
-    from ..data.flow import flow_for_scene
     own = flow_for_scene(scene, method=cfg.flow_method, progress=progress, max_pixels=cfg.flow_max_pixels)
     extra = []
     for m in between_flow_methods(cfg):

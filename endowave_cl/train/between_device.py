@@ -24,6 +24,7 @@ from __future__ import annotations
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+import pyopencl.array as cla
 
 from ..ops.between import (Frame, Path, between_fuse, between_mix, between_push, between_splat, between_warp,
                            check_int64_atomics, frame_on_device, stack)
@@ -83,7 +84,6 @@ class DeviceTarget:
             return None
         key = id(a)
         if key not in self._flows:
-            import pyopencl.array as cla
             self._flows[key] = cla.to_device(self.rt.queue, np.ascontiguousarray(a, np.float32))
             self._keep.append(a)                     # the id stays this array's
         return self._flows[key]

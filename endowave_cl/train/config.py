@@ -9,11 +9,21 @@ ones the paper leaves open are chosen here and commented.
 """
 from __future__ import annotations
 
+import difflib
+import inspect
 import math
+import re
 import sys
 from dataclasses import dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib  # setup.cfg requires it below 3.11
+
+from ..data.flow import METHODS, MIN_ESTIMATION_PIXELS
+from ..data.scene import SPLITS
 from ..errors import EndowaveError
 from ..wavelet.config import WaveletConfig
 
@@ -559,7 +569,6 @@ def between_flow_methods(cfg: TrainConfig):
 
 def validate_config(cfg: TrainConfig, source: str) -> None:
     """Every key in its range; one-line EndowaveError naming the source and the key otherwise."""
-    import math
     for name, (low, high, low_in, high_in) in RANGES.items():
         v = getattr(cfg, name)
         if isinstance(v, float) and math.isnan(v):
@@ -575,20 +584,17 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
         if getattr(cfg, name) != want:
             raise EndowaveError(f"{source}: key '{name}' must be {want} (the model layout is fixed in this "
                                 f"version; other values are not implemented), got {getattr(cfg, name)}")
-    from ..data.flow import MIN_ESTIMATION_PIXELS
     if 0 < cfg.flow_max_pixels < MIN_ESTIMATION_PIXELS:     # the estimators fail on smaller frames (issue 57)
         raise EndowaveError(f"{source}: key 'flow_max_pixels' must be 0 (the frame's size) or at least "
                             f"{MIN_ESTIMATION_PIXELS}, got {cfg.flow_max_pixels}")
     if cfg.between_levels == 1:
         raise EndowaveError(f"{source}: key 'between_levels' must be 0 (continuous) or at least 2 (a grid of "
                             f"fractions), got 1")
-    from ..data.scene import SPLITS
     for key, allowed in (("recipe", RECIPES), ("split", SPLITS), ("between_path", PATHS),
                          ("between_s", S_DISTRIBUTIONS), ("between_fuse", FUSE_MODES)):
         value = getattr(cfg, key)
         if value not in allowed:
             raise EndowaveError(f"{source}: key '{key}' must be one of {', '.join(allowed)}, got {value!r}")
-    from ..data.flow import METHODS
     for m in between_flow_methods(cfg):
         if m not in METHODS:
             raise EndowaveError(f"{source}: key 'between_flows' must list flow methods from "
@@ -598,28 +604,19 @@ def validate_config(cfg: TrainConfig, source: str) -> None:
                             f"got {cfg.flow_method!r}")
 
 
-def _toml_module():
-    if sys.version_info >= (3, 11):
-        import tomllib
-        return tomllib
-    import tomli  # setup.cfg requires it below 3.11
-    return tomli
-
-
 def read_toml(path, what: str) -> Dict[str, Any]:
     """The TOML file at ``path`` as a dict; one-line EndowaveError naming the file otherwise.
     ``what`` names the kind of file in the messages ("config file", "manifest")."""
-    toml = _toml_module()
     try:
         with open(path, "rb") as f:
-            return toml.load(f)
+            return tomllib.load(f)
     except FileNotFoundError:
         raise EndowaveError(f"{path}: {what} does not exist") from None
     except IsADirectoryError:
         raise EndowaveError(f"{path}: is a folder, not a TOML {what}") from None
     except OSError as e:
         raise EndowaveError(f"{path}: cannot read the {what} ({e.strerror or e})") from None
-    except (toml.TOMLDecodeError, UnicodeDecodeError) as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise EndowaveError(f"{path}: not valid TOML: {e}") from None
 
 
@@ -682,7 +679,6 @@ _MEANINGS = {
 
 def did_you_mean(key: str) -> str:
     """" (did you mean 'x'?)" for the TrainConfig key nearest to a mistyped one, else ""."""
-    import difflib
     near = difflib.get_close_matches(str(key), sorted(KEYS), n=1, cutoff=0.6)
     return f" (did you mean '{near[0]}'?)" if near else ""
 
@@ -690,8 +686,6 @@ def did_you_mean(key: str) -> str:
 def _field_comments() -> Dict[str, str]:
     """{flat key: the comment beside its field in its section's source, the lines joined} (empty
     when the source cannot be read)."""
-    import inspect
-    import re
     out: Dict[str, str] = {}
     for name, (cls, prefix) in SECTIONS.items():
         try:
@@ -753,8 +747,6 @@ def _values_text(name: str, default: Any) -> str:
         return f"fixed: {FIXED[name]}"
     if isinstance(default, bool):
         return "true | false"
-    from ..data.flow import METHODS
-    from ..data.scene import SPLITS
     choices = {"recipe": tuple(RECIPES), "split": SPLITS, "between_path": PATHS,
                "between_s": S_DISTRIBUTIONS, "between_fuse": FUSE_MODES, "flow_method": METHODS}
     if name in choices:

@@ -12,6 +12,8 @@ import io
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from ..atomic import write_bytes_atomic
+
 CSV_NAME = "train_curves.csv"
 PNG_NAME = "train_curves.png"
 TB_DIR = "tensorboard"
@@ -37,7 +39,6 @@ def csv_text(history: List[Dict[str, float]]) -> str:
 
 
 def write_csv(run_dir, history) -> Path:
-    from ..atomic import write_bytes_atomic
     path = Path(run_dir) / CSV_NAME
     write_bytes_atomic(path, csv_text(history).encode())
     return path
@@ -84,11 +85,9 @@ def write_png(run_dir, history, title: Optional[str] = None) -> Optional[Path]:
     history has fewer than two rows."""
     if len(history) < 2:
         return None
-    import matplotlib
+    import matplotlib      # on first use: about 1 s to import; Agg chosen before pyplot loads
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..atomic import write_bytes_atomic
     steps = [h["step"] for h in history]
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), constrained_layout=True)
     ax = axes[0, 0]

@@ -20,9 +20,13 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
 
 from ..runtime import round_up
 from ..loss_constants import gaussian_window_1d
+from ..ops.util import read_back
+from ..wavelet.ops import conv_axis, diff_loss_and_grad_deferred
 
 KFILE = "image_loss.cl"
 LOCAL = 64          # work-group size of the per-pixel kernels (power of two: image_loss_terms reduces)
@@ -53,7 +57,6 @@ def prepare_targets(rt, image: np.ndarray, mask: Optional[np.ndarray] = None, de
     """Upload a frame's targets (numpy, channel-last) with the weight maps of image_losses_ref (reference/losses.py).
     temporary: targets of one step (an in-between frame): device memory from the runtime's pool, and
     uploads that do not wait (each keeps its host array alive until it is done)."""
-    import pyopencl.array as cla
     allocator = rt.pool() if temporary else None
 
     def up(a):
@@ -103,7 +106,6 @@ def rgb_weight_table(rt, cfg, npix: int):
     """cla float32 [npix + 1, 2]: rgb_weights for every supervised pixel count 0 .. npix (the same
     float64 operations, elementwise), for targets whose count stays on the device; per runtime,
     lambdas and size."""
-    import pyopencl.array as cla
 
     def make():
         w_l1, w_ssim = rgb_weights(cfg, np.maximum(3.0 * np.arange(npix + 1, dtype=np.float64), 1.0))
@@ -114,14 +116,12 @@ def rgb_weight_table(rt, cfg, npix: int):
 def _ssim_target(rt, image, mask, allocator=None) -> object:
     """The target's SSIM maps (y m, (y m)^2) blurred: they do not depend on the render, so they are
     made once per frame here instead of in every step."""
-    import pyopencl.array as cla
     H, W = (int(s) for s in image.shape[:2])
     npix = H * W
     stack = rt.empty((H, W, NTMAP), np.float32)
     rt.launch(rt.kernel(KFILE, "ssim_target_stack"), (round_up(max(npix, 1), LOCAL),), (LOCAL,), image.data,
               mask.data, np.int32(npix), stack.data)
     window = _window(rt)
-    from ..wavelet.ops import conv_axis
     tmp = conv_axis(rt, stack, window, axis=1, border="zero")
     out = cla.empty(rt.queue, (H, W, NTMAP), np.float32, allocator=allocator)   # None: own buffer, kept for the run
     return conv_axis(rt, tmp, window, axis=0, out=out, border="zero")
@@ -129,14 +129,12 @@ def _ssim_target(rt, image, mask, allocator=None) -> object:
 
 def _window(rt) -> object:
     """The SSIM window (loss_constants.gaussian_window_1d) as a float32 device array, cached per runtime."""
-    import pyopencl.array as cla
     # symmetric: its own reverse
     return rt.cached("ssim.window", lambda: cla.to_device(rt.queue, gaussian_window_1d().astype(np.float32)))
 
 
 def _blur(rt, x, window) -> object:
     """The separable SSIM blur (zero padding) of x [H, W, K]: along W, then along H."""
-    from ..wavelet.ops import conv_axis
     return conv_axis(rt, conv_axis(rt, x, window, axis=1, border="zero"), window, axis=0, border="zero")
 
 
@@ -159,7 +157,6 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
     Reads the sums back (one read); the trainer uses image_losses_enqueue and reads them with the
     step's other scalars.
     """
-    from ..ops.util import read_back
     pending = image_losses_enqueue(rt, features, tgt, cfg, channels, wavelet_config)
     total, parts = pending.finish(read_back(rt, pending.sums))
     return total, parts, pending.v_features
@@ -168,8 +165,6 @@ def image_losses_and_grad(rt, features, tgt: DeviceTargets, cfg, channels: Dict[
 def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[str, int],
                          wavelet_config=None) -> PendingLosses:
     """image_losses_and_grad without the read-back: the kernels are enqueued, nothing is read."""
-    import pyopencl as cl
-
     if features.ndim != 3 or features.dtype != np.float32:
         raise ValueError(f"features must be a float32 [H, W, C] array, got {features.dtype} {features.shape}")
     H, W, CF = (int(s) for s in features.shape)
@@ -215,7 +210,6 @@ def image_losses_enqueue(rt, features, tgt: DeviceTargets, cfg, channels: Dict[s
     wavelet_finish = None
     v_rgb = None
     if cfg.use_wavelet and cfg.lambda_wavelet > 0 and wavelet_config is not None:
-        from ..wavelet.ops import diff_loss_and_grad_deferred
         d = rt.empty((H, W, 3), np.float32)
         rt.launch(rt.kernel(KFILE, "rgb_masked_diff", opts), gsize, (LOCAL,), features.data, tgt.image.data,
                   tgt.mask.data, np.int32(tgt.has_mask), np.int32(npix), d.data)

@@ -19,6 +19,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import EndowaveError
+from ..ops.util import any_nonfinite
 
 # the training PSNR (EMA) falling this far below its best since the last opacity reset is a
 # collapse: a healthy run's EMA dips by ~1-3 dB between frames, the runs above lose 10-30 dB
@@ -67,7 +68,6 @@ class DivergenceGuard:
     def check(self, step: int, params, rt) -> None:
         """At log steps and before every save: raise TrainingDiverged when every Gaussian is gone or
         the parameters are non-finite or have run away.  ``params``: the device parameter arrays."""
-        from ..ops.util import any_nonfinite
         n = len(params["means"])
         if n == 0:
             raise TrainingDiverged(f"step {step}: every Gaussian was pruned (often a huge lr_opacity, "

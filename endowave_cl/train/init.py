@@ -32,6 +32,7 @@ import numpy as np
 from ..data.scene import prior_plane_depth
 from ..errors import EndowaveError
 from ..gaussians import Gaussians, num_sh_bases
+from .motion import frame_velocities, gaussian_from_covariance, linear_lifetime, moving_covariance
 
 SH_C0 = 0.28209479177387814   # Y_00: DC coefficient c gives colour 0.5 + SH_C0 * c
 INIT_OPACITY = 0.1
@@ -109,7 +110,6 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
 
     vel_maps = {}
     if flows:
-        from .motion import frame_velocities
         vel_maps = frame_velocities(frames, idx, flows, d_prior if d_prior > 0 else
                                     prior_depth(frames, idx, near, far))
     xyz, rgb, tt, size, vel, trusted, accel = [], [], [], [], [], [], []
@@ -142,7 +142,6 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
         # between TIME_SCALE_FRAMES spacings and sigma_t; where the flow failed its consistency check
         # (fast tools, occlusions, highlights) the motion is unknown and it lives for a frame or so,
         # so that it cannot smear what it shows across the sequence.
-        from .motion import linear_lifetime
         floor = min(sigma_t, TIME_SCALE_FRAMES * spacing)
         sigma_pt = linear_lifetime(size * _stride(tt, times, n_keep, total, len(idx), sigma_t),
                                    accel, floor, sigma_t)
@@ -164,7 +163,6 @@ def init_gaussians(frames, train_indices: Sequence[int], near: float, far: float
     quat_r = quat_l.copy()
     moving = np.flatnonzero(np.abs(vel).max(1) > 0)
     if moving.size:
-        from .motion import gaussian_from_covariance, moving_covariance
         cov = moving_covariance(np.maximum(size[moving], 1e-12), sigma_pt[moving], vel[moving])
         scales[moving], quat_l[moving], quat_r[moving] = gaussian_from_covariance(cov)
     return Gaussians(means=np.concatenate([xyz, tt[:, None]], 1), scales=scales, quat_l=quat_l, quat_r=quat_r,

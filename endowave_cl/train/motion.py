@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from typing import Dict, Tuple
 
+import cv2
 import numpy as np
 
 from ..gaussians import quat_left as _quat_left, quat_right as _quat_right
@@ -114,7 +115,6 @@ def spatial_size(sigma: np.ndarray) -> np.ndarray:
 def _fill(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Normalised convolution: values [H, W, C] known where weight [H, W] > 0 -> filled [H, W, C]
     (0 where too little is known nearby)."""
-    import cv2
     H, W = weight.shape
     sigma = max(1.0, FILL_SIGMA * float(np.hypot(H, W)))
     ksize = int(2 * round(3 * sigma) + 1)

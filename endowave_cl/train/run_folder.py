@@ -16,19 +16,24 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import hashlib
+import json
 import os
 import re
 import shutil
 import signal
+import threading
 from pathlib import Path
 from typing import Callable, Iterable, List, Optional
 
 import numpy as np
 
-from ..atomic import TEMP_RE, stale_temporaries
+from ..atomic import TEMP_RE, json_safe, stale_temporaries, write_bytes_atomic, write_json_atomic
 from ..errors import EndowaveError
-from ..checkpoint import checkpoints_by_step, load_newest_good_checkpoint
+from ..checkpoint import checkpoint_path, checkpoints_by_step, load_newest_good_checkpoint, save_checkpoint
+from ..gaussians import download
+from .guard import DivergenceGuard
 
 LOCK_NAME = ".lock"
 PREVIOUS_RUN = "previous_run"
@@ -72,7 +77,6 @@ def make_run_dir(run_dir) -> bool:
 
 def _is_ours(path: Path, keys) -> bool:
     """Whether path is a JSON object with all of keys (a file endowave-cl wrote)."""
-    import json
     try:
         d = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -109,7 +113,6 @@ class RunLock:
         self.fd: Optional[int] = None
 
     def acquire(self) -> "RunLock":
-        import fcntl
         while True:
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -268,7 +271,6 @@ def check_same_scene(ck_extra: dict, scene, ckpt_path,
 
 
 def _has_history(log_file: Path) -> bool:
-    import json
     try:
         d = json.loads(log_file.read_text())
     except (OSError, ValueError):
@@ -349,9 +351,6 @@ class RunSession:
         return None, None
 
     def start(self, trainer, ck) -> None:
-        import json
-        from ..atomic import json_safe, write_bytes_atomic
-        from .guard import DivergenceGuard
         if not self.resume:
             retire_previous_run(self.run_dir, self.log)
         self.fingerprint = scene_fingerprint(trainer.scene)
@@ -393,7 +392,6 @@ class RunSession:
 
     # -------------------------------------------------------------- the loop
     def _install_handlers(self) -> None:
-        import threading
         if self._old_handlers is not None or threading.current_thread() is not threading.main_thread():
             return
         names = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
@@ -456,15 +454,12 @@ class RunSession:
 
     # -------------------------------------------------------------- saving
     def write_log(self, trainer, final, stopped: Optional[str] = None) -> None:
-        from ..atomic import write_json_atomic
         log = {"final": final, "history": trainer.history}
         if stopped:
             log["stopped"] = stopped
         write_json_atomic(self.run_dir / "train_log.json", log)
 
     def save(self, trainer) -> Path:
-        from ..gaussians import download
-        from ..checkpoint import checkpoint_path, save_checkpoint
         try:
             self.guard.check(trainer.step, trainer.params, trainer.rt)
         except EndowaveError as e:

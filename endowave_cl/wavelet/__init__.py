@@ -20,6 +20,6 @@ __all__ = ["BANDS", "design_filters", "level_shapes", "resampled_length", "suppo
 
 def __getattr__(name):
     if name in _FROM_LOSS:
-        from . import loss
+        from . import loss     # on first use: loss.py imports torch (see above)
         return getattr(loss, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

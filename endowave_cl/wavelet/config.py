@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Tuple
 
 from .filters import rational_factor
+from .ops import loss_and_grad
 
 BORDERS = ("reflect",)
 
@@ -58,5 +59,4 @@ def wavelet_loss_and_grad(rt, rendered, target, mask=None, config: WaveletConfig
     rendered, target: pyopencl arrays [H, W, C] float32 (any H, W, C); mask: [H, W] float32 or None.
     The mask multiplies both images before the transform; v_rendered already includes it.
     """
-    from .ops import loss_and_grad
     return loss_and_grad(rt, rendered, target, mask, config.q, config.levels, config.weights)

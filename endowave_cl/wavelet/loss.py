@@ -12,9 +12,11 @@ band, so every band of every level counts by its average squared error whatever 
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cla
 import torch
 
 from ..reference.wavelet import wavelet_loss_ref
+from ..runtime import get_runtime
 from .config import BORDERS, WaveletConfig, wavelet_loss_and_grad  # noqa: F401  (re-exported)
 
 
@@ -23,7 +25,6 @@ from .config import BORDERS, WaveletConfig, wavelet_loss_and_grad  # noqa: F401 
 # ---------------------------------------------------------------------------------------------
 
 def _to_device(rt, t: torch.Tensor):
-    import pyopencl.array as cla
     return cla.to_device(rt.queue, np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy()))
 
 
@@ -39,7 +40,6 @@ class WaveletLossFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rendered, target, mask, config, rt=None):
         if rt is None:
-            from ..runtime import get_runtime
             rt = get_runtime()
         if config is None:
             config = WaveletConfig()
@@ -78,7 +78,6 @@ class RationalWaveletLoss(torch.nn.Module):
     @property
     def rt(self):
         if self._rt is None:
-            from ..runtime import get_runtime
             self._rt = get_runtime()
         return self._rt
 

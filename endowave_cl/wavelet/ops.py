@@ -25,6 +25,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from ..ops.rasterize import simt_device
 from ..runtime import round_up, view
 from .filters import BAND_FILTERS, BANDS, design_filters, rational_factor, resampled_length
 
@@ -170,7 +171,6 @@ def _conv_stack(rt, kname: str, x: cla.Array, f, terms: Terms, axis: int, out: O
             np.int32(bool(flag)), table.data, np.int32(stride))
     staged = _staged_rows_floats(rt, kname, n, inner, flen, max(len(t) for t in terms), run)
     if staged:   # a row pass: one work-group per line, its input lines staged in local memory
-        import pyopencl as cl
         group = rows_group(rt)
         rt.launch(rt.kernel(KFILE, kname.replace("conv_axis", "conv_axis_rows"), [f"-DCONV_RUN={run}"]),
                   (group, max(outer, 1), len(terms)), (group, 1, 1), *args, cl.LocalMemory(4 * staged))
@@ -183,7 +183,6 @@ def _conv_stack(rt, kname: str, x: cla.Array, f, terms: Terms, axis: int, out: O
 
 def rows_group(rt) -> int:
     """Work-items per line (one work-group) of the staged row passes on rt's device."""
-    from ..ops.rasterize import simt_device
     return min(ROWS_GROUP_SIMT, rt.max_work_group_size) if simt_device(rt) else 1
 
 
@@ -377,7 +376,6 @@ def conv_resample_stack(rt, x: cla.Array, f, terms: Terms, q: int, axis: int) ->
     staged = _staged_rows_floats(rt, "conv_axis", n, inner, flen, max(len(t) for t in terms), run)
     if not staged or 4 * (staged + n * inner) > ROWS_LOCAL_SHARE * rt.local_mem_size:
         return resample_axis(rt, conv_axis_stack(rt, x, f, terms, axis), q, axis=axis)
-    import pyopencl as cl
     table, stride = _terms_table(rt, terms, slots, nf)
     n_out = resampled_length(n, int(q))
     shape = list(x.shape)
@@ -406,7 +404,6 @@ def resample_conv_stack_bwd(rt, v_out: cla.Array, q: int, n_in: int, f, terms: T
     if not staged or resampled_length(int(n_in), int(q)) != n_out:
         w = resample_axis_bwd(rt, v_out, q, axis=axis, n_in=n_in)
         return conv_axis_stack_bwd(rt, w, f, terms, axis, out=out, accumulate=accumulate)
-    import pyopencl as cl
     table, stride = _terms_table(rt, terms, slots, nf)
     shape = list(v_out.shape)
     shape[0], shape[axis] = len(terms), int(n_in)

@@ -29,7 +29,7 @@ def synthetic_endoscopy_image(h: int = 256, w: int = 320, seed: int = 0,
         vess = np.maximum(vess, np.exp(-0.5 * (dist / width) ** 2))
     base = base * (1 - 0.45 * vess[..., None] * np.array([0.5, 1.0, 1.0]))
     # fine texture
-    from scipy.ndimage import gaussian_filter
+    from scipy.ndimage import gaussian_filter   # scipy: not a declared dependency (scikit-image brings it)
     tex = gaussian_filter(rng.normal(0, 1, (h, w)), 1.5)
     tex /= tex.std() + 1e-12
     base = base * (1 + 0.03 * tex[..., None])

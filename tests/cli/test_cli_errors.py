@@ -203,14 +203,14 @@ def test_eval_json_is_strict_when_psnr_is_infinite(tiny_run, monkeypatch, capsys
     """All-black frames rendered exactly give PSNR inf: eval.json stays strict JSON (null)."""
     import json
 
-    from endowave_cl import cli, metrics
-    real = metrics.frame_scores
+    from endowave_cl import cli, evaluation
+    real = evaluation.frame_scores
 
     def exact(pred, gt, mask=None, with_lpips=False):
         out = real(pred, gt, mask, with_lpips)
         out.update(psnr=float("inf"), psnr_masked=float("inf"))
         return out
-    monkeypatch.setattr(metrics, "frame_scores", exact)
+    monkeypatch.setattr(evaluation, "frame_scores", exact)   # metrics.frame_scores as evaluation imports it
     assert cli.main(["eval", str(tiny_run), "--fps-runs", "0"]) == 0, capsys.readouterr().err
     text = (tiny_run / "eval.json").read_text()
 

@@ -221,8 +221,11 @@ def _init_velocity(scene, rt, tmp_path):
 
 def _flow_method(scene, rt, tmp_path, monkeypatch):
     import endowave_cl.data.flow as flow_module
+    import endowave_cl.train.between as between_module
     seen = []
-    monkeypatch.setattr(flow_module, "flow_for_scene", lambda sc, method, progress, max_pixels=0: seen.append(method) or {})
+    fake = lambda sc, method, progress, max_pixels=0: seen.append(method) or {}   # noqa: E731
+    for mod in (flow_module, between_module):     # data.flow's, and as train/between.py imports it
+        monkeypatch.setattr(mod, "flow_for_scene", fake)
     _trainer(scene, rt, tmp_path / "a", use_flow=True)
     _trainer(scene, rt, tmp_path / "b", use_flow=True, flow_method="tvl1")
     assert seen == ["dis_fine", "tvl1"]
@@ -238,7 +241,9 @@ def _flow_max_pixels(scene, rt, tmp_path, monkeypatch):
     def spy(sc, method, progress, max_pixels=0):
         seen.append((method, max_pixels))
         return real(sc, method=method, progress=False, max_pixels=max_pixels)
-    monkeypatch.setattr(flow_module, "flow_for_scene", spy)
+    import endowave_cl.train.between as between_module
+    for mod in (flow_module, between_module):     # data.flow's, and as train/between.py imports it
+        monkeypatch.setattr(mod, "flow_for_scene", spy)
     from endowave_cl.train.config import FLOW_MAX_PIXELS
     _trainer(scene, rt, tmp_path / "a", use_flow=True, between_prob=0.5, between_flows="dis")
     _trainer(scene, rt, tmp_path / "b", use_flow=True, between_prob=0.5, between_flows="dis", flow_max_pixels=600)

@@ -32,14 +32,14 @@ def _gaussians(static: bool, n: int = 1500, seed: int = 0):
 
 def test_training_time_call_is_cheap_and_unchanged(rt, scene_dir, monkeypatch):
     """Trainer.evaluate's call: no baselines, no LPIPS, no FPS; the flow check is there for gt_flow."""
-    from endowave_cl import baselines
+    from endowave_cl import evaluation
     from endowave_cl.data.scene import load_scene
     from endowave_cl.evaluation import evaluate_run
     from endowave_cl.gaussians import upload
 
     def boom(*a, **k):
         raise AssertionError("baselines computed in the training-time evaluation")
-    monkeypatch.setattr(baselines, "baseline_scores", boom)
+    monkeypatch.setattr(evaluation, "baseline_scores", boom)   # baselines.baseline_scores as evaluation imports it
     scene = load_scene(scene_dir)
     m = evaluate_run(rt, upload(rt, _gaussians(False)), scene, fps_runs=0, with_lpips=False)
     assert m["lpips"] is None and m["fps"] is None and "baselines" not in m and "margin" not in m
