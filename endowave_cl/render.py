@@ -18,9 +18,14 @@ from dataclasses import dataclass, field
 from typing import Dict, Optional
 
 import numpy as np
+import pyopencl.array as cla
 
 from .camera import Camera
 from .layout import CHANNELS, DEPTH, FLOW, RGB  # noqa: F401  (CHANNELS: read from here by callers)
+from .ops.binning import bin_projected
+from .ops.project import project4d, project4d_bwd
+from .ops.rasterize import accumulate_densify_stats, rasterize_projected, rasterize_projected_bwd, simt_device
+from .ops.select import SELECT_MAX_SHARE, select_live
 
 
 @dataclass
@@ -84,17 +89,12 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
     buffers (ops/binning.py); check=False reads nothing, and the caller tests out.overflowed after
     its own next wait on the device (the training step's read-back) and renders again where it is
     true."""
-    from .ops.binning import bin_projected
-    from .ops.project import project4d
-    from .ops.rasterize import rasterize_projected
-
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
     if timed:
         rt.queue.finish()
     live = None
     if select:
-        from .ops.select import SELECT_MAX_SHARE, select_live
         live = select_live(rt, params, t, SELECT_MAX_SHARE)
         if live is not None:
             params = live.params
@@ -129,14 +129,8 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     statistics (still [N]) are updated at those rows.
     Returns {v_means, v_scales, v_quat_l, v_quat_r, v_opacity, v_sh, v_phase}.
     """
-    import pyopencl.array as cla
-
-    from .ops.project import project4d_bwd
-    from .ops.rasterize import rasterize_projected_bwd
-
     cam = out.camera
     if deterministic is None:
-        from .ops.rasterize import simt_device
         deterministic = not simt_device(rt)
     if v_alpha is None:
         # one zero image per size, kept by the runtime (the adjoint kernels only read v_alpha)
@@ -162,7 +156,6 @@ def accumulate_stats(rt, out: RenderOutput, densify_stats: Dict[str, object]) ->
     """The densification statistics of the render's adjoint (ops.rasterize.accumulate_densify_stats
     of out.v_means2d, which render_backward left): render_backward(densify_stats=...) calls it, and
     the training step calls it itself once it has seen that the render did not overflow."""
-    from .ops.rasterize import accumulate_densify_stats
     if out.v_means2d is None:
         raise ValueError("accumulate_stats: render_backward has not run on this render")
     p, cam = out.proj, out.camera

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Dict
 
 import numpy as np
+import pyopencl.array as cla
 
 from .. import env, probe
 from ..errors import EndowaveError
@@ -132,7 +133,6 @@ def vec_width() -> int:
 def vec_block(vw: int = None) -> tuple:
     """(BW, BH): a work-item's pixel block in the vector variant with vw lanes, BW * BH = vw."""
     vw = vw or vec_width()
-    from .. import env
     bw = env.get(ENV_VEC_BLOCK_W) or min(VEC_BLOCK_W, vw)
     if vw % bw or bw > TILE:
         raise env.EnvError(f"environment variable {ENV_VEC_BLOCK_W}={bw}: must divide the lane count {vw}")
@@ -299,7 +299,6 @@ def rasterize_bwd(rt, means2d, conic, opac, features, sorted_values, tile_ranges
     words of scratch, M the length of sorted_values: ops.binning's capacity, at least the pairs).
     choice: the variant to run, as in ``rasterize``.
     """
-    import pyopencl.array as cla
     width, height = int(width), int(height)
     _check(means2d, conic, opac, features, tile_ranges, width, height)
     N, C = (int(s) for s in features.shape)

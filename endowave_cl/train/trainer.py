@@ -26,10 +26,29 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
+import pyopencl.array as cla
 
-from ..gaussians import Gaussians, download, upload
-from ..render import DEPTH, FLOW, render, render_backward
+from ..data.flow import estimation_size, flow_for_scene
+from ..evaluation import evaluate_run
+from ..gaussians import Gaussians, covariance_4d, download, upload
+from ..host_memory import keep_freed_memory
+from ..ops.adam import DeviceAdam, anneal_factor, opacity_reset, position_lr
+from ..ops.select import select_enabled
+from ..ops.util import nonfinite_flag, read_back
+from ..progress import hold_rate, progress as progress_bar, restart_rate
+from ..render import DEPTH, FLOW, accumulate_stats, render, render_backward
+from . import curves
+from .between import BetweenSampler
+from .between_device import motion_on_device
+from .budget import MIN_TIMED_STEPS, RATE_WINDOW, WARMUP_STEPS, BudgetPlan
+from .config import between_flow_methods
+from .curves import TensorBoard
+from .densify import densify_and_prune, logit, moment_source_index, temporal_row_order
+from .device_losses import image_losses_enqueue, prepare_targets
 from .guard import TrainingDiverged  # noqa: F401  (a non-finite step or a diverged run)
+from .init import init_gaussians
+from .motion import temporal_coverage
+from .run_folder import RunSession
 
 
 @dataclass
@@ -63,8 +82,6 @@ ETA_WARMUP_STEPS = 5   # steps of a session before the progress rate is measured
 class Trainer:
     def __init__(self, scene, cfg, run_dir, rt, log: Callable[[str], None] = print, resume: bool = True,
                  progress: bool = False):
-        from ..host_memory import keep_freed_memory
-        from .run_folder import RunSession
         keep_freed_memory()      # the steps' large host temporaries reuse heap memory (host_memory.py)
         self.scene, self.cfg, self.rt, self.log = scene, cfg, rt, log
         self._flow_progress = progress    # a progress bar while flows not in the cache are computed
@@ -86,7 +103,6 @@ class Trainer:
             raise
 
     def _init_model(self, scene, cfg, rt, resume):
-        from ..ops.adam import DeviceAdam
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.history: List[Dict[str, float]] = []
@@ -104,15 +120,12 @@ class Trainer:
                 self.cfg = self.cfg.replace(max_gaussians=int(ck["config"].get("max_gaussians", self.cfg.max_gaussians)))
             self.log(f"resuming from {ckpt_path} at step {self.step} ({len(g)} Gaussians)")
         else:
-            from .init import init_gaussians
             g = init_gaussians(scene.frames, scene.train_indices, scene.near, scene.far,
                                max_points=cfg.init_points, seed=cfg.seed, sh_degree=cfg.sh_degree,
                                nt=cfg.temporal_freqs, time_scale=cfg.init_time_scale,
                                flows=self.flows if cfg.init_velocity else None)
             self.extent = scene_extent(g)
             if self._auto_cap and len(g):
-                from ..gaussians import covariance_4d
-                from .motion import temporal_coverage
                 sigma_t = np.sqrt(np.maximum(covariance_4d(g)[:, 3, 3], 0.0))
                 self.cfg = self.cfg.resolve_cap_for_lifetimes(scene.width, scene.height,
                                                               float(temporal_coverage(g.means[:, 3], sigma_t).mean()))
@@ -123,14 +136,12 @@ class Trainer:
             self.adam.load_state_dict(ck["adam_state"])
         self._reset_stats()
         self.targets = self._prepare_targets()
-        from .between import BetweenSampler
         self._between = BetweenSampler.from_config(rt, scene, self.cfg, self.flows if cfg.between_prob > 0 else {},
                                                    self._load_between_flows())
         self._run.start(self, ck)    # restart: retire the earlier run; resume: sampling state; config.json
 
     # ------------------------------------------------------------------ setup
     def group_lrs(self, step: int) -> Dict[str, float]:
-        from ..ops.adam import anneal_factor, position_lr
         c = self.cfg
         steps = c.lr_position_steps or c.iterations
         a = anneal_factor(step, c.densify_until, c.iterations, c.lr_anneal_final)
@@ -148,7 +159,6 @@ class Trainer:
         return self.cfg.between_prob * late_factor(self.cfg, step, self.cfg.between_anneal_final)
 
     def _reset_stats(self):
-        import pyopencl.array as cla
         n = len(self.params["means"])
         q = self.rt.queue
         self.stats = {"grad_accum": cla.zeros(q, (n,), np.float32), "count": cla.zeros(q, (n,), np.int32),
@@ -160,7 +170,6 @@ class Trainer:
         c = self.cfg
         if not (c.use_flow or c.init_velocity or c.between_prob > 0):
             return {}
-        from ..data.flow import estimation_size, flow_for_scene
         flows = flow_for_scene(self.scene, method=c.flow_method, progress=self._flow_progress,
                                max_pixels=c.flow_max_pixels)
         work = estimation_size(self.scene.width, self.scene.height, c.flow_max_pixels)
@@ -172,8 +181,6 @@ class Trainer:
     def _load_between_flows(self) -> List[Dict[int, object]]:
         """The between_flows estimators' flows of the training pairs (cached on disk), for the
         in-between targets; none when the scene brings its own flow (every method reads it)."""
-        from ..data.flow import flow_for_scene
-        from .config import between_flow_methods
         if self.cfg.between_prob <= 0:
             return []
         out = []
@@ -188,7 +195,6 @@ class Trainer:
         return out
 
     def _prepare_targets(self) -> Dict[int, FrameTargets]:
-        from .device_losses import prepare_targets
         sc, c = self.scene, self.cfg
         flows = self.flows if c.use_flow else {}
         out = {}
@@ -257,14 +263,12 @@ class Trainer:
         """Steps render and differentiate only the Gaussians alive at their time (ops/select.py)
         when Adam leaves the culled ones alone anyway (adam_skip_culled): the same updates, for
         a fraction of the per-Gaussian work ($ENDOWAVE_NO_SELECT=1 turns it off, for benchmarks)."""
-        from ..ops.select import select_enabled
         return bool(self.cfg.adam_skip_culled) and select_enabled()
 
     def rendered_motion(self, out):
         """[H, W, 2]: the flow channels of a render, where each pixel's Gaussians lie at t_flow: a
         device array where the in-between targets are built on the device, else read back."""
         if getattr(self, "_between", None) is not None and self._between.device is not None:
-            from .between_device import motion_on_device
             return motion_on_device(self.rt, out.features, FLOW.start)
         return out.features.get()[..., FLOW]
 
@@ -277,8 +281,6 @@ class Trainer:
         after the read-back for that).  Targets whose supervised pixel count stayed on the device
         (device_losses.device_targets) come back with it: where it is 0 the step is dropped there,
         nothing changed, and None returned (as the sampler's draw returns None for host targets)."""
-        from ..ops.util import nonfinite_flag, read_back
-        from ..render import accumulate_stats
         if out is None:
             out = render(self.rt, self.params, camera, t, t_next, select=self.select_live, check=False)  # forward
         while True:
@@ -305,7 +307,6 @@ class Trainer:
         """The step's losses against dev (device_losses.DeviceTargets; a FrameTargets is accepted
         too) enqueued on the device (train/device_losses.py): a PendingLosses with the gradient image
         v_features [H, W, C] and the sums the host reads back."""
-        from .device_losses import image_losses_enqueue
         dev = getattr(dev, "dev", dev)
         channels = {"depth": DEPTH, "flow": FLOW.start}
         return image_losses_enqueue(self.rt, out.features, dev, self.cfg, channels, self.wavelet_config)
@@ -313,7 +314,6 @@ class Trainer:
     def losses_and_gradient(self, out, tgt: FrameTargets):
         """Total loss, its parts (and the training PSNR), and the gradient image v_features
         [H, W, C]: losses_enqueue, then its sums read back (benchmarks/bench_train_step.py times it)."""
-        from ..ops.util import read_back
         pending = self.losses_enqueue(out, tgt)
         total, parts = pending.finish(read_back(self.rt, pending.sums))
         return total, parts, pending.v_features
@@ -337,7 +337,6 @@ class Trainer:
     # ------------------------------------------------------------------ density control
     def densify(self):
         """3DGS density control in 4D on the host: clone, split (children sampled in space-time), prune."""
-        from .densify import densify_and_prune, moment_source_index, temporal_row_order
         self._run.check_parameters(self)     # non-finite or runaway parameters stop the run here
         info: Dict[str, object] = {}
         new_g, source = densify_and_prune(
@@ -359,15 +358,12 @@ class Trainer:
         place, and the opacity group's Adam moments zeroed (as 3DGS).  The other parameters and
         moments and the densification statistics are kept, as in 3DGS: the reset lowers opacities,
         it does not restart the gradient statistics that choose what to densify."""
-        from ..ops.adam import opacity_reset
-        from .densify import logit
         opacity_reset(self.rt, self.params["opacity"], np.float32(logit(self.cfg.opacity_reset_value)))
         self.adam.reset_moments("opacity")
 
     # ------------------------------------------------------------------ evaluation, checkpoints
     def evaluate(self) -> Dict[str, float]:
         """Test-frame PSNR (both forms) and SSIM; LPIPS and FPS are left to `endowave-cl eval`."""
-        from ..evaluation import evaluate_run
         return evaluate_run(self.rt, self.params, self.scene, fps_runs=0, with_lpips=False)
 
     def save(self):
@@ -378,7 +374,6 @@ class Trainer:
     # ------------------------------------------------------------------ time budget
     def _start_budget(self):
         """A BudgetPlan when cfg.minutes is set (train/budget.py), else None."""
-        from .budget import BudgetPlan
         c = self.cfg
         if not c.minutes > 0:
             return None
@@ -389,7 +384,6 @@ class Trainer:
     def _replan(self, budget, step_times: List[float], bar) -> bool:
         """Re-plan the schedule from the measured step rate (first after MIN_TIMED_STEPS steps,
         then every log interval); True when the plan changed."""
-        from .budget import MIN_TIMED_STEPS, RATE_WINDOW, WARMUP_STEPS
         timed = step_times[WARMUP_STEPS:]
         first = budget.planned is None
         if len(timed) < MIN_TIMED_STEPS or not (first or self.step % self.cfg.log_every == 0):
@@ -423,7 +417,6 @@ class Trainer:
     def _write_curves(self, tb, png: bool = False) -> None:
         """RUN/train_curves.csv (and the newest row to TensorBoard; with png, train_curves.png):
         train/curves.py.  A curve file that cannot be written costs a line, not the run."""
-        from . import curves
         try:
             if tb is not None and self.history:
                 tb.add(self.history[-1])
@@ -435,7 +428,6 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def train(self, progress: bool = True) -> Dict[str, float]:
-        from ..progress import hold_rate, progress as progress_bar, restart_rate
         c = self.cfg
         order = list(self.scene.train_indices)
         bar = progress_bar(total=c.iterations, initial=self.step, disable=not progress, dynamic_ncols=True,
@@ -445,7 +437,6 @@ class Trainer:
         eta_from = self.step + ETA_WARMUP_STEPS   # the rate and time left count the steps after these
         hold_rate(bar)
         budget = self._start_budget()
-        from .curves import TensorBoard
         tb = TensorBoard(self.run_dir, self.step)   # scalars when tensorboard is installed; the CSV always
         step_times: List[float] = []
         ema = self._run.ema                  # restored on resume

@@ -49,7 +49,7 @@ def _target_kw(tr, **over):
 def _loop(scene, rt, tmp_path, **kw):
     """Run Trainer.train with train_step, density control's host work (densify_and_prune), the
     opacity reset, evaluation and saving replaced by recorders: {event: [steps]}."""
-    import endowave_cl.train.densify as densify_module
+    import endowave_cl.train.trainer as trainer_module
     tr = _trainer(scene, rt, tmp_path, **kw)
     ev = {"densify": [], "reset": [], "evaluate": [], "save": [], "prune_big": []}
 
@@ -68,7 +68,7 @@ def _loop(scene, rt, tmp_path, **kw):
     tr.evaluate = lambda: ev["evaluate"].append(tr.step) or {"psnr": 0.0, "psnr_masked": 0.0, "ssim": 0.0}
     tr.save = lambda: ev["save"].append(tr.step)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(densify_module, "densify_and_prune", densify_and_prune)
+        mp.setattr(trainer_module, "densify_and_prune", densify_and_prune)   # densify's, as the trainer imports it
         tr.train(progress=False)
     ev["steps"] = tr.step
     ev["history"] = [h["step"] for h in tr.history]
@@ -222,9 +222,10 @@ def _init_velocity(scene, rt, tmp_path):
 def _flow_method(scene, rt, tmp_path, monkeypatch):
     import endowave_cl.data.flow as flow_module
     import endowave_cl.train.between as between_module
+    import endowave_cl.train.trainer as trainer_module
     seen = []
     fake = lambda sc, method, progress, max_pixels=0: seen.append(method) or {}   # noqa: E731
-    for mod in (flow_module, between_module):     # data.flow's, and as train/between.py imports it
+    for mod in (flow_module, between_module, trainer_module):   # data.flow's, as the trainer imports it
         monkeypatch.setattr(mod, "flow_for_scene", fake)
     _trainer(scene, rt, tmp_path / "a", use_flow=True)
     _trainer(scene, rt, tmp_path / "b", use_flow=True, flow_method="tvl1")
@@ -242,7 +243,8 @@ def _flow_max_pixels(scene, rt, tmp_path, monkeypatch):
         seen.append((method, max_pixels))
         return real(sc, method=method, progress=False, max_pixels=max_pixels)
     import endowave_cl.train.between as between_module
-    for mod in (flow_module, between_module):     # data.flow's, and as train/between.py imports it
+    import endowave_cl.train.trainer as trainer_module
+    for mod in (flow_module, between_module, trainer_module):   # data.flow's, as the trainer imports it
         monkeypatch.setattr(mod, "flow_for_scene", spy)
     from endowave_cl.train.config import FLOW_MAX_PIXELS
     _trainer(scene, rt, tmp_path / "a", use_flow=True, between_prob=0.5, between_flows="dis")

@@ -169,13 +169,8 @@ def _function_imports(name, path):
     return found
 
 
-# moved in the next commit: another change to these modules was under way
-PENDING = {"endowave_cl.train.trainer", "endowave_cl.render", "endowave_cl.ops.rasterize"}
-
-
 def _allowed(name, target):
-    return name in PENDING or any(name == m and (target == a or target.startswith(a + "."))
-                                  for m, a in LAZY_IMPORTS)
+    return any(name == m and (target == a or target.startswith(a + ".")) for m, a in LAZY_IMPORTS)
 
 
 def test_imports_are_at_the_top():
