@@ -2,7 +2,7 @@
  * Gaussian; vector variant (-DP4_VW=W): W Gaussians per work-item, one per lane (project4d_common.h).
  * Reference: endowave_cl/reference/project.py::project4d_ref.
  * Build option -DALPHA_MIN (layout.py): the tile rect covers only where alpha can reach it;
- * -DP4_NO_TIGHT_RECT keeps the 3-sigma rect (tests/test_tight_rect.py compares the two). */
+ * -DP4_NO_TIGHT_RECT keeps the 3-sigma rect (tests/kernels/test_tight_rect.py compares the two). */
 #include "project4d_common.h"
 
 #if defined(P4_VW) && HAVE_PREFETCH

@@ -10,7 +10,7 @@ Contract checked for each case (a violation is a defect):
   * the shared run and scene the cases start from are never changed (only a case's own copies);
   * no case takes longer than its time limit (a hang), and no hidden temporary is left behind.
 Most cases run in this process (cli.main, SIGALRM as a time limit); signal cases run as a child.
-Not part of the test suite: the cases that found a defect are tests in tests/test_hostile.py.
+Not part of the test suite: the cases that found a defect are tests in tests/cli/test_hostile.py.
 """
 from __future__ import annotations
 

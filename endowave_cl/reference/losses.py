@@ -1,7 +1,7 @@
 """Image-space training losses in torch: the definitions, and the reference of the device version.
 
 The trainer computes the same functions, and their gradient images for rasterize_bwd, with the
-OpenCL kernels of endowave_cl/train/device_losses.py (cl/image_loss.cl); tests/test_device_losses.py
+OpenCL kernels of endowave_cl/train/device_losses.py (cl/image_loss.cl); tests/kernels/test_device_losses.py
 checks them against ``image_losses_ref`` here and its torch autograd gradient.
 
 Images are channel-last float tensors: image [H, W, 3], depth [H, W], flow [H, W, 2];

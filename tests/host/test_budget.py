@@ -52,5 +52,8 @@ def test_minutes_stops_within_budget(rt, tmp_path):
     m = tr.train(progress=False)
     took = time.perf_counter() - t0
     print(f"{m['step']} steps planned {tr.cfg.iterations}, {took:.1f} s of {60 * minutes:.0f}")
-    assert took <= 60 * minutes * 1.1
+    # the loop stops inside the budget (one step of slack); the final save and evaluation come
+    # after it, and take longer on a loaded machine
+    assert m["train_seconds"] <= 60 * minutes * 1.05
+    assert took <= 60 * minutes * 1.5
     assert m["step"] > 20 and tr.cfg.iterations < 100000    # it trained and the plan replaced 100000
