@@ -6,7 +6,8 @@ Runs Trainer.schedule_step, the loop's own choice between a plain step and an in
 and prints per kind of step the median wall time, kernel time (OpenCL event profiling of the
 Runtime's launches, kernel_events.py), host time (wall minus kernels: on a CPU device the kernels
 and the host share the cores, so this is the time the device did not run a Runtime kernel), the
-Runtime's kernel launches, the blocking reads and the waits for a binning's pair count per step:
+Runtime's kernel launches, the blocking reads and the waits for a count copied without blocking (a
+binning's pair count, select's live-row count) per step:
 
     plain           a step on a training frame
     between         an in-between step before densify_until (the static target: flows only)
@@ -62,8 +63,9 @@ def load() -> str:
 class ReadCounter:
     """Counts blocking device-to-host reads (pyopencl.enqueue_copy into a numpy array, which every
     cla.Array.get and ops.util.read_back goes through), host-to-device uploads, and waits: the
-    binning's pair counts (copied without blocking, ops.binning.PairCount) read while their copy had
-    not completed, i.e. where the host waited on the device for them, while installed."""
+    binning's pair counts and select's live-row counts (copied without blocking, ops.binning.PairCount)
+    read while their copy had not completed, i.e. where the host waited on the device for them, while
+    installed."""
 
     def __init__(self):
         import numpy as np
@@ -242,7 +244,7 @@ def main(argv=None):
         for name, r in rows.items():
             report(r, f"in-between targets built on the {name}: median per step (kernel: Runtime launches' "
                       f"events; host: wall - kernel; reads: blocking device-to-host reads, max: the most in one "
-                      f"step; waits: pair counts the host waited for; load average after: "
+                      f"step; waits: pair or live-row counts the host waited for; load average after: "
                       f"{load()})")
     if args.full_run:
         full_run(scene_path, args.downscale, args.set)

@@ -270,13 +270,14 @@ __kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),
     /* the row ROWS_AHEAD work-items on: its lines in every array, requested while this row is
      * updated (the selected rows are scattered, so the hardware's stream prefetch misses them) */
     if (i + ROWS_AHEAD < n_rows) {
-        const int ra = rows[i + ROWS_AHEAD];
+        const int ra = max(rows[i + ROWS_AHEAD], 0);   /* padding (-1): row 0, a harmless request */
         PREFETCH_ROW(0) PREFETCH_ROW(1) PREFETCH_ROW(2) PREFETCH_ROW(3) PREFETCH_ROW(4)
         PREFETCH_ROW(5) PREFETCH_ROW(6)
     }
 #endif
     if (skip_culled && visible[i] == 0) return;
     const int r = rows[i];
+    if (r < 0) return;   /* padding after the selected rows (ops/select.py) */
     ROW_UPDATE(0)
     ROW_UPDATE(1)
     ROW_UPDATE(2)

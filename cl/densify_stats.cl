@@ -22,6 +22,7 @@ __kernel void accumulate_densify_stats(__global const float2 *v_means2d, /* [L, 
     const int r = radius[i];
     if (r <= 0) return;
     const int j = has_rows ? rows[i] : i;
+    if (j < 0) return;   /* padding after the selected rows (ops/select.py) */
     const float2 v = v_means2d[i] * (float2)(half_w, half_h);
     grad_accum[j] += sqrt(v.x * v.x + v.y * v.y);
     count[j] += 1;

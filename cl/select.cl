@@ -54,18 +54,25 @@ __kernel void live_flags(const int n,
 #endif
 }
 
-/* rows[offsets[i]] = i for every flagged i (offsets: the exclusive scan of flags) */
+/* rows[offsets[i]] = i for every flagged i whose slot is below cap (offsets [N + 1]: the exclusive
+ * scan of flags, offsets[N] = L the selected count), and rows[j] = -1 for L <= j < cap: a buffer of
+ * cap rows (cap <= N) sized before L is known holds the first min(L, cap) selected rows, then
+ * padding; L > cap (an overflow) is detected on the host from L. */
 __kernel void live_rows(const int n, __global const int *flags, __global const int *offsets,
-                        __global int *rows)
+                        const int cap, __global int *rows)   /* [cap] */
 {
     const int i = get_global_id(0);
-    if (i >= n || !flags[i]) return;
-    rows[offsets[i]] = i;
+    if (i >= n) return;
+    if (i < cap && i >= offsets[n]) rows[i] = -1;
+    if (flags[i] && offsets[i] < cap) rows[offsets[i]] = i;
 }
 
 #ifdef SH_W
 /* The parameters of the selected rows: row r of each output is row rows[r] of its input (one
- * work-item per selected row).  -DSH_W, -DPHASE_W: floats per row of sh and phase. */
+ * work-item per selected row); a padding row (rows[r] < 0) gets a Gaussian that project4d culls at
+ * every time of the sequence (centred at DEAD_T, unit scales, identity rotations, opacity logit
+ * DEAD_OPACITY, no colour), so that every later stage treats it as it treats any culled row.
+ * -DSH_W, -DPHASE_W: floats per row of sh and phase; -DDEAD_T, -DDEAD_OPACITY (ops/select.py). */
 __kernel void gather_params(const int n_rows, __global const int *rows,
                             __global const float4 *means, __global const float4 *scales,
                             __global const float4 *quat_l, __global const float4 *quat_r,
@@ -81,7 +88,7 @@ __kernel void gather_params(const int n_rows, __global const int *rows,
     /* the row ROWS_AHEAD work-items on, requested while this one is copied (the selected rows are
      * scattered, so the hardware's stream prefetch misses them) */
     if (r + ROWS_AHEAD < n_rows) {
-        const int a = rows[r + ROWS_AHEAD];
+        const int a = max(rows[r + ROWS_AHEAD], 0);   /* padding (-1): row 0, a harmless request */
         PREFETCH(means + a); PREFETCH(scales + a); PREFETCH(quat_l + a); PREFETCH(quat_r + a);
         PREFETCH(opacity + a);
         prefetch_floats(sh + a * SH_W, SH_W);
@@ -89,6 +96,16 @@ __kernel void gather_params(const int n_rows, __global const int *rows,
     }
 #endif
     const int i = rows[r];
+    if (i < 0) {
+        o_means[r] = (float4)(0.0f, 0.0f, 0.0f, DEAD_T);
+        o_scales[r] = (float4)(0.0f);
+        o_quat_l[r] = (float4)(1.0f, 0.0f, 0.0f, 0.0f);
+        o_quat_r[r] = (float4)(1.0f, 0.0f, 0.0f, 0.0f);
+        o_opacity[r] = DEAD_OPACITY;
+        for (int c = 0; c < SH_W; ++c) o_sh[r * SH_W + c] = 0.0f;
+        for (int c = 0; c < PHASE_W; ++c) o_phase[r * PHASE_W + c] = 0.0f;
+        return;
+    }
     o_means[r] = means[i];
     o_scales[r] = scales[i];
     o_quat_l[r] = quat_l[i];

@@ -60,8 +60,9 @@ class RenderOutput:
 
     @property
     def overflowed(self) -> bool:
-        """The binning's pairs did not fit its buffers (render(check=False) only): not to be used."""
-        return self.binned.overflowed
+        """The selected rows or the binning's pairs did not fit their buffers (render(check=False)
+        only): not to be used."""
+        return (self.live is not None and self.live.overflowed) or self.binned.overflowed
 
     def host(self) -> Dict[str, np.ndarray]:
         """Download: image [H,W,3], depth [H,W], flow [H,W,2], alpha [H,W] as numpy arrays."""
@@ -85,17 +86,17 @@ def render(rt, params: Dict[str, object], camera: Camera, t: float, t_flow: Opti
     when they are at most SELECT_MAX_SHARE of them: the stage records (and render_backward's
     gradients) then have one row per selected Gaussian, out.live.rows naming them (out.live is
     None when every row was rendered).
-    check: the binning waits for its pair count and re-emits the pairs where they overflowed its
-    buffers (ops/binning.py); check=False reads nothing, and the caller tests out.overflowed after
-    its own next wait on the device (the training step's read-back) and renders again where it is
-    true."""
+    check: the selection reads its row count (ops/select.py) and the binning waits for its pair
+    count and re-emits the pairs where they overflowed its buffers (ops/binning.py); check=False
+    reads nothing, and the caller tests out.overflowed after its own next wait on the device (the
+    training step's read-back) and renders again where it is true."""
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
     if timed:
         rt.queue.finish()
     live = None
     if select:
-        live = select_live(rt, params, t, SELECT_MAX_SHARE)
+        live = select_live(rt, params, t, SELECT_MAX_SHARE, check=check)
         if live is not None:
             params = live.params
         t0 = _tick(rt, timings, "select", t0, timed)

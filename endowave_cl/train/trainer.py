@@ -13,9 +13,9 @@ random time between two training frames, against the frame their flow predicts t
 (train/between.py).
 
 Parameters, Adam moments, the rendered images and every frame's targets stay on the device; per
-step the host reads select's count of the live rows and one small buffer of scalars (the loss sums
-and the gradients' NaN / Inf flag; the binning's pair count, copied without blocking, is checked
-after it), and the parameters only when densifying, checkpointing or exporting.
+step the host reads one small buffer of scalars (the loss sums and the gradients' NaN / Inf flag;
+select's live-row count and the binning's pair count, copied without blocking, are checked after
+it), and the parameters only when densifying, checkpointing or exporting.
 """
 from __future__ import annotations
 
@@ -212,10 +212,11 @@ class Trainer:
     def train_step(self, k: int) -> Dict[str, float]:
         """One optimisation step on training frame k.
 
-        Two blocking reads: select's count of the live rows, and, before Adam, one read-back of the
-        step's scalars: the loss sums and the NaN / Inf flag of the gradients, after which the
-        binning's pair count (copied without blocking) is checked (_step).  The camera is uploaded
-        once (project4d; project4d_bwd reuses its buffer)."""
+        One blocking read: before Adam, the read-back of the step's scalars (the loss sums and the
+        NaN / Inf flag of the gradients), after which select's count of the live rows and the
+        binning's pair count (both copied without blocking) are checked (_step); only a run's
+        first selection and binning read their counts to size their buffers.  The camera is
+        uploaded once (project4d; project4d_bwd reuses its buffer)."""
         frame, tgt = self.scene.frames[k], self.targets[k]
         return self._step(frame.camera, frame.time, tgt.next_time, tgt.dev, f"frame {k}")
 
@@ -275,9 +276,9 @@ class Trainer:
     def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Optional[Dict[str, float]]:
         """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam.
         out: the step's forward when it was rendered already (train_step_between).
-        The render does not wait for its pair count: the read-back is the step's wait, and where
-        the pairs overflowed the binning's buffers (ops/binning.py) the step is done again from a
-        checked render before anything is changed (the densification statistics are accumulated
+        The render waits for neither its live-row count nor its pair count: the read-back is the
+        step's wait, and where the rows or the pairs overflowed their buffers (ops/select.py,
+        ops/binning.py) the step is done again from a checked render before anything is changed (the densification statistics are accumulated
         after the read-back for that).  Targets whose supervised pixel count stayed on the device
         (device_losses.device_targets) come back with it: where it is 0 the step is dropped there,
         nothing changed, and None returned (as the sampler's draw returns None for host targets)."""

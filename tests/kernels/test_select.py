@@ -75,6 +75,85 @@ def test_select_live_compacts_and_gathers_exactly(rt, n):
         assert got.shape == want[name].shape and np.array_equal(got, want[name]), name
 
 
+def _fresh_capacity(rt, share=None):
+    """The runtime's LiveCapacity emptied, or having seen `share` (latest share = its capacity's / HEADROOM)."""
+    from endowave_cl.ops.select import live_capacity
+    policy = live_capacity(rt)
+    policy.__init__()
+    if share is not None:
+        policy.observe(round(share * 1000), 1000)
+    return policy
+
+
+@pytest.mark.oclgrind
+def test_select_live_unchecked_pads_to_its_capacity_and_reads_nothing(rt, monkeypatch):
+    """check=False: the first selection reads L and sizes C = L exactly; later ones hold
+    C = HEADROOM x the latest share x N rows with nothing read: the selected rows, then -1, whose
+    gathered Gaussians project4d culls; L comes back without blocking and is what the next
+    selection sizes from."""
+    import endowave_cl.ops.select as sel
+    n = small(500, 37)
+    g = _short_lived(n, 3)
+    params = upload(rt, g)
+    rows_ref, want = select_live_ref(g, live_flags(rt, params, 0.5).get())
+    L = len(rows_ref)
+    assert 0 < L < n // 2
+    policy = _fresh_capacity(rt)
+    first = select_live(rt, params, 0.5, check=False)
+    assert len(first) == L and first.count.value() == L and not first.overflowed
+    assert policy.latest == L / n
+    reads = []
+    monkeypatch.setattr(cla.Array, "get", lambda self, *a, **k: reads.append(self) or np.zeros(0))
+    live = select_live(rt, params, 0.5, check=False)
+    monkeypatch.undo()
+    assert reads == []
+    cap = min(n, max(sel.MIN_ROWS, int(np.ceil(L / n * sel.HEADROOM * n))))
+    assert len(live) == cap > L and live.count.capacity == cap
+    rows = live.rows.get()
+    assert np.array_equal(rows[:L], rows_ref) and np.all(rows[L:] == -1)
+    for name in PARAM_NAMES:
+        assert np.array_equal(live.params[name].get()[:L], want[name]), name
+    assert live.count.value() == L and not live.overflowed
+    radius = project4d(rt, live.params, _camera(64, 48), 0.5).radius.get()
+    assert np.all(radius[L:] == 0)                         # the padding is culled
+    for t in (0.0, 1.0):
+        assert np.all(project4d(rt, live.params, _camera(64, 48), t).radius.get()[L:] == 0)
+
+
+@pytest.mark.oclgrind
+def test_select_live_unchecked_overflow_is_reported(rt, monkeypatch):
+    """A capacity below L: the first C selected rows, and overflowed, never a silent truncation;
+    check=True then reads L and gathers every row."""
+    import endowave_cl.ops.select as sel
+    monkeypatch.setattr(sel, "MIN_ROWS", 16)   # Oclgrind's small scene selects fewer than MIN_ROWS
+    n = small(2000, 600)
+    g = _short_lived(n, 3)
+    params = upload(rt, g)
+    rows_ref, _ = select_live_ref(g, live_flags(rt, params, 0.5).get())
+    L = len(rows_ref)
+    _fresh_capacity(rt, share=0.5 * L / n / sel.HEADROOM)   # C about L / 2
+    live = select_live(rt, params, 0.5, check=False)
+    cap = len(live)
+    assert sel.MIN_ROWS <= cap < L and live.overflowed and live.count.value() == L
+    assert np.array_equal(live.rows.get(), rows_ref[:cap])
+    again = select_live(rt, params, 0.5, check=True)
+    assert len(again) == L and not again.overflowed and np.array_equal(again.rows.get(), rows_ref)
+    assert select_live(rt, params, 0.5, check=False).count.capacity >= L   # grown from the overflow
+
+
+def test_select_live_unchecked_above_the_share_renders_every_row(rt):
+    """check=False tests max_share on the latest share seen; the count is still read back without
+    blocking, so that a share that falls is seen and selection resumes."""
+    g = _short_lived(300, 8)
+    params = upload(rt, g)
+    policy = _fresh_capacity(rt, share=0.9)
+    assert select_live(rt, params, 0.5, 0.5, check=False) is None
+    assert policy.pending is not None
+    rt.queue.finish()
+    live = select_live(rt, params, 0.5, 0.5, check=False)   # the pending share (< 0.5) was seen first
+    assert live is not None and policy.latest < 0.5
+
+
 @pytest.mark.oclgrind
 def test_gather_params_rows_in_any_order(rt):
     g = Gaussians.random(small(40, 12), seed=4, degree=2)   # sh rows of 81 floats: not whole float4s
@@ -113,6 +192,44 @@ def test_selected_render_and_adjoint_equal_the_full_ones(rt):
         assert np.all(rest == 0), k
     for k in sf:
         assert np.array_equal(sf[k], ss[k]), k
+
+
+def test_padded_render_adjoint_and_adam_equal_the_full_ones(rt):
+    """render(select=True, check=False) on a padded rows buffer: the same image bits as the full
+    render, the full adjoint's rows at the selected rows and zeros at the padding, the same
+    densification statistics, and Adam over the padded rows the same as over every row."""
+    n, w, h = 400, 64, 48
+    g = _short_lived(n, 5)
+    cam = _camera(w, h)
+    v = cla.to_device(rt.queue, np.random.default_rng(0).standard_normal((h, w, 6)).astype(np.float32))
+    lrs = {"means": 1e-3, "scales": 5e-3, "quat_l": 1e-3, "quat_r": 1e-3, "opacity": 0.05, "sh": 2.5e-3,
+           "phase": 1e-3}
+    res = {}
+    for select in (False, True):
+        params = upload(rt, g)
+        opt = DeviceAdam(rt, params, lrs)
+        stats = {"grad_accum": cla.zeros(rt.queue, (n,), np.float32), "count": cla.zeros(rt.queue, (n,), np.int32),
+                 "max_radius": cla.zeros(rt.queue, (n,), np.float32)}
+        _fresh_capacity(rt, share=0.45)
+        out = render(rt, params, cam, 0.5, 0.55, select=select, check=False)
+        assert not out.overflowed
+        grads = render_backward(rt, params, out, v, densify_stats=stats, deterministic=True, sh_factors=True)
+        got = {k: getattr(a, "factors", a).get() for k, a in grads.items()}
+        opt.step({k[2:]: a for k, a in grads.items()}, visible=out.proj.radius,
+                 rows=None if out.live is None else out.live.rows)
+        res[select] = (out, got, {k: a.get() for k, a in stats.items()}, {k: a.get() for k, a in params.items()})
+    (full, gf, sf, pf), (sel, gs, ss, ps) = res[False], res[True]
+    L = sel.live.count.value()
+    assert 0 < L < len(sel.live) < n
+    assert np.array_equal(full.features.get(), sel.features.get())
+    rows = sel.live.rows.get()[:L]
+    for k in gf:
+        assert np.array_equal(gf[k][rows], gs[k][:L]), k
+        assert np.all(gs[k][L:] == 0), k
+    for k in sf:
+        assert np.array_equal(sf[k], ss[k]), k
+    for k in pf:
+        assert np.array_equal(pf[k], ps[k]), k
 
 
 def test_select_leaves_a_mostly_alive_model_whole(rt):
@@ -165,14 +282,18 @@ def test_densify_stats_on_rows_match_the_full_kernel(rt):
     full_r = np.zeros(n, np.int32)
     full_r[rows] = radius
     out = []
-    for r_arg, vv, rr in ((None, full_v, full_r), (rows, v2d, radius)):
+    pad = 5   # padding rows (-1, radius 0) after the selected ones, as select_live(check=False) leaves them
+    rows_p = np.concatenate([rows, np.full(pad, -1, np.int32)])
+    v2d_p = np.concatenate([v2d, rng.standard_normal((pad, 2)).astype(np.float32)])
+    radius_p = np.concatenate([radius, np.zeros(pad, np.int32)])
+    for r_arg, vv, rr in ((None, full_v, full_r), (rows, v2d, radius), (rows_p, v2d_p, radius_p)):
         stats = [cla.to_device(rt.queue, a) for a in (np.full(n, 0.5, np.float32), np.ones(n, np.int32),
                                                         np.full(n, 2.0, np.float32))]
         accumulate_densify_stats(rt, cla.to_device(rt.queue, vv), cla.to_device(rt.queue, rr), 40, 30, *stats,
                                  rows=None if r_arg is None else cla.to_device(rt.queue, r_arg))
         out.append([a.get() for a in stats])
-    for a, b in zip(*out):
-        assert np.array_equal(a, b)
+    for a, b, c in zip(*out):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
 
 
 def _adam_pair(rt, g, lrs):
@@ -212,7 +333,11 @@ def test_adam_on_rows_equals_adam_with_the_culled_rows_frozen(rt, factored, degr
                 out["sh"] = ShGradFactors(out["sh"], nt, K)
             return out
         opt["full"].step(dev(full), visible=cla.to_device(rt.queue, full_vis))
-        opt["rows"].step(dev(comp), visible=cla.to_device(rt.queue, vis), rows=cla.to_device(rt.queue, rows))
+        pad = 3   # padding rows (-1, not visible) after the selected ones, as select_live(check=False) leaves them
+        comp = {k: np.concatenate([a, np.ones((pad,) + a.shape[1:], np.float32)]) for k, a in comp.items()}
+        rows_p = np.concatenate([rows, np.full(pad, -1, np.int32)])
+        vis_p = np.concatenate([vis, np.zeros(pad, np.int32)])
+        opt["rows"].step(dev(comp), visible=cla.to_device(rt.queue, vis_p), rows=cla.to_device(rt.queue, rows_p))
     a, b = opt["full"].state_dict(), opt["rows"].state_dict()
     for name in PARAM_NAMES:
         np.testing.assert_array_equal(params["full"][name].get(), params["rows"][name].get(), err_msg=name)
