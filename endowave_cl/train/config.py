@@ -232,9 +232,11 @@ class FlowSettings:
 @dataclass(frozen=True)
 class BetweenSettings:
     """The in-between steps and their targets (train/between.py BetweenSampler, Trainer.between_prob)."""
-    prob: float = 0.5               # fraction of steps spent at a random time between two training
+    prob: float = 0.7               # fraction of steps spent at a random time between two training
                                     # frames, supervised by the frame the pair's flow predicts there
-                                    # (train/between.py); 0: training frames only (research/QUALITY.md)
+                                    # (train/between.py); 0: training frames only; 0.7: chosen on the
+                                    # validation frames of every shared scene (research/QUALITY.md
+                                    # finding 37)
     anneal_final: float = 0.5          # between_prob is multiplied by a factor that falls linearly
                                     # from 1 at densify_until to this at the last step (0: the run
                                     # ends on the training frames alone; 1: constant; 0.5: what

@@ -18,7 +18,7 @@ def test_every_key_is_listed_with_a_meaning():
         if key in RANGES:
             assert values, key
     by_key = {r[1]: r[2:] for r in rows}
-    assert by_key["between_prob"][:2] == ("0.5", "in [0, 1]")
+    assert by_key["between_prob"][:2] == ("0.7", "in [0, 1]")
     assert by_key["between_path"][1] == "linear | quadratic"
     assert by_key["use_flow"][1] == "true | false"
     assert by_key["init_time_scale"][2].startswith("longest initial temporal std")
