@@ -156,14 +156,14 @@ def test_interrupted_and_resumed_equals_uninterrupted(rt, tiny_scene, tmp_path):
     full.train(progress=False)
 
     part = _trainer(tiny_scene, tmp_path / "part", rt, **kw)
-    orig = part.train_step
+    orig = part.schedule_step
 
-    def step_then_signal(k):        # a SIGINT arriving during step 17 (mid-way between densifications)
-        out = orig(k)
+    def step_then_signal(order):    # a SIGINT arriving during step 17 (mid-way between densifications),
+        out = orig(order)           # whichever kind of step the schedule draws there
         if part.step == 17:
             part._run.stop.request("SIGINT")
         return out
-    part.train_step = step_then_signal
+    part.schedule_step = step_then_signal
     with pytest.raises(StopRequested, match="step 17"):
         part.train(progress=False)
     resumed = _trainer(tiny_scene, tmp_path / "part", rt, **kw)
