@@ -219,15 +219,6 @@ def disagreement(warps: Sequence[Tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     return np.stack([cv2.blur(cv2.transform(cv2.absdiff(w0, w1), channel_sum), size) for w0, w1 in warps])
 
 
-def confidence_weight(warps: Sequence[Tuple[np.ndarray, np.ndarray]], tau: float) -> np.ndarray:
-    """[H, W] in (0, 1]: exp(-(E / tau)^2) with E the smallest disagreement over the hypotheses
-    (disagreement): 1 where some estimator's two warps show the same tissue, falling where none
-    does (occlusions, highlights, flow failures), so that the in-between loss leans less on a
-    target that is likely wrong there (between_confidence)."""
-    e = disagreement(warps).min(0) * np.float32(1.0 / tau)
-    return np.exp(-(e * e)).astype(np.float32)
-
-
 def fused_interpolation(warps: Sequence[Tuple[np.ndarray, np.ndarray]], s: float,
                         valid: Optional[Sequence[np.ndarray]] = None,
                         mode: str = "agree") -> Tuple[np.ndarray, np.ndarray]:
@@ -322,10 +313,9 @@ def blend_model_prediction(scene, pair, s: float, image: np.ndarray, weight: np.
 
 def _flow_prediction(f0, f1, pair, s: float, extra: Sequence[object], fuse: str, flow_splat: bool,
                      pushed_flows: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                     bend: Optional[Bend] = None, confidence: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+                     bend: Optional[Bend] = None) -> Tuple[np.ndarray, np.ndarray]:
     """(image [H, W, 3], weight [H, W]): between_target's flow half, the frame at s predicted from
-    the pair's flows alone (its arguments).  confidence > 0: the weight is multiplied by
-    confidence_weight of the hypotheses' warps with that tau."""
+    the pair's flows alone (its arguments)."""
 
     def backward(item):
         """(W0, W1, ok): the frames sampled backward along estimator h's flows"""
@@ -346,8 +336,6 @@ def _flow_prediction(f0, f1, pair, s: float, extra: Sequence[object], fuse: str,
         image = ((1.0 - s) * w0 + s * w1).astype(np.float32)
     else:
         image, weight = fused_interpolation([(w0, w1) for w0, w1, _ in hyps], s, [ok for _, _, ok in hyps], fuse)
-    if confidence > 0.0:
-        weight = weight * confidence_weight([(w0, w1) for w0, w1, _ in hyps], confidence)
     if flow_splat:
         flow, flow_bw = consistent_flows(sources) if pushed_flows is None else pushed_flows
         g0, g1 = (bend.paths(flow, flow_bw, s) if bend is not None
@@ -488,9 +476,8 @@ class BetweenSampler:
     def __init__(self, rt, scene, flows: Dict[int, object], extra_flows: Sequence[Dict[int, object]] = (),
                  fuse: str = "agree", model_splat: bool = False, flow_splat: bool = False,
                  motion_refresh: int = 0, s_distribution: str = "uniform", path: str = "linear",
-                 levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES, confidence: float = 0.0):
+                 levels: int = 0, cache_bytes: int = TARGET_CACHE_BYTES):
         self.rt, self.scene, self.fuse = rt, scene, fuse
-        self.confidence = float(confidence)
         self.levels = int(levels)
         # (pair index, grid point j) -> (image [H, W, 3] float16, weight [H, W] float16): the flow
         # prediction at s = j / levels, kept up to cache_bytes (levels >= 2 only)
@@ -583,7 +570,7 @@ class BetweenSampler:
             bend = self._bends[index]
         f0, f1 = self.scene.frames[pair.src], self.scene.frames[pair.dst]
         image, weight = _flow_prediction(f0, f1, pair, s, self.extra(pair), self.fuse, self.flow_splat,
-                                         pushed, bend, self.confidence)
+                                         pushed, bend)
         if j and abs(j - s * self.levels) < 1e-6 and self._cache_left >= image.size * 2 + weight.size * 2:
             kept = (image.astype(np.float16), np.asarray(weight).astype(np.float16))
             self._static[key] = kept
@@ -596,8 +583,7 @@ class BetweenSampler:
                     extra_flows: Sequence[Dict[int, object]] = ()) -> "BetweenSampler":
         """The sampler a TrainConfig's between_* keys describe."""
         return cls(rt, scene, flows, extra_flows, cfg.between_fuse, cfg.between_model_splat, cfg.between_flow_splat,
-                   cfg.between_motion_refresh, cfg.between_s, cfg.between_path, cfg.between_levels,
-                   confidence=cfg.between_confidence)
+                   cfg.between_motion_refresh, cfg.between_s, cfg.between_path, cfg.between_levels)
 
     def _fused(self, index: int) -> Tuple[np.ndarray, np.ndarray]:
         """consistent_flows of pair index's estimators, made once."""

@@ -26,7 +26,6 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import pyopencl.array as cla
 
-from ..errors import EndowaveError
 from ..ops.between import (Frame, Path, between_fuse, between_mix, between_push, between_splat, between_warp,
                            check_int64_atomics, frame_on_device, stack)
 
@@ -50,9 +49,6 @@ class DeviceTarget:
         min_weight: SPLAT_MIN_WEIGHT; pair_bend: between.pair_bend (passed in: between.py imports
         this module)."""
         check_int64_atomics(rt)
-        if getattr(sampler, "confidence", 0.0) > 0.0:
-            raise EndowaveError("between_confidence: in-between targets with confidence weights are built on "
-                                "the host only; set ENDOWAVE_BETWEEN_TARGET=host")
         self.rt, self.b = rt, sampler
         self.radius, self.tau, self.min_weight = radius, tau, min_weight
         self._frames: Dict[int, Frame] = {}

@@ -273,11 +273,6 @@ class BetweenSettings:
                                     # consistent_flows) instead of sampling them backward, the
                                     # backward prediction filling the pixels that no source pixel
                                     # reaches (research/QUALITY.md findings 21, 22)
-    confidence: float = 0.0         # > 0: an in-between target's pixels are weighted by
-                                    # exp(-(E / this)^2), E the disagreement of the best flow
-                                    # hypothesis's two warps there (train/between.py
-                                    # confidence_weight): the loss leans less on the target where
-                                    # no estimator's warps agree; 0: every pixel weighs 1
     model: float = 0.5              # from densify_until on, the in-between target is this blend of
                                     # the pair's frames warped along the motion the model itself
                                     # renders there and the flow interpolation (train/between.py;
@@ -479,6 +474,7 @@ REMOVED = {
     "between_sampler": ("cubic", "finding 10"),
     "between_splat": ("reverse", "finding 21"),
     "between_push": ("fused", "finding 22"),
+    "between_confidence": (0.0, "finding 39"),
 }
 
 
@@ -530,7 +526,7 @@ RANGES = {
     "iterations": _NON_NEGATIVE, "minutes": _NON_NEGATIVE, "seed": (0, 2 ** 63 - 1, True, True), "log_every": _AT_LEAST_1,
     "eval_every": _NON_NEGATIVE, "checkpoint_every": _NON_NEGATIVE,
     "downscale": (1, None, True, False), "init_points": _NON_NEGATIVE, "init_time_scale": _NON_NEGATIVE,
-    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_confidence": _NON_NEGATIVE, "between_motion_refresh": _NON_NEGATIVE, "between_levels": (0, 1024, True, True), "between_anneal_final": _UNIT,
+    "max_gaussians": _NON_NEGATIVE, "between_prob": _UNIT, "between_model": _UNIT, "between_motion_refresh": _NON_NEGATIVE, "between_levels": (0, 1024, True, True), "between_anneal_final": _UNIT,
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,

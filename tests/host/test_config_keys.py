@@ -13,7 +13,6 @@ import json
 import math
 from types import SimpleNamespace
 
-import cv2
 import numpy as np
 import pytest
 
@@ -804,31 +803,6 @@ def _between_model(scene, rt, tmp_path):
         validate_config(TrainConfig(between_model=1.5), "cfg.toml")
 
 
-def _between_confidence(scene, rt, tmp_path):
-    """between_confidence: the drawn in-between target's weights are multiplied by
-    exp(-(E / tau)^2), E the smallest disagreement of the hypotheses' warps (one estimator here:
-    its own), the image unchanged; 0 leaves every weight as it was; a negative tau is refused."""
-    import endowave_cl.train.between as B
-    from endowave_cl.train.config import validate_config
-    drawn = {}
-    for tau in (0.0, 0.05):
-        tr = _trainer(scene, rt, tmp_path / f"c{tau}", iterations=0, between_prob=1.0, between_flows="",
-                      between_flow_splat=False, between_path="linear", between_confidence=tau)
-        _, _, dev = tr._between.draw(np.random.default_rng(3))
-        drawn[tau] = (dev.image.get(), dev.mask.get())
-    rng = np.random.default_rng(3)
-    pair = tr._between.pairs[int(rng.integers(len(tr._between.pairs)))]
-    s = float(rng.uniform(0.0, 1.0))
-    f0, f1 = scene.frames[pair.src], scene.frames[pair.dst]
-    w0, w1, _ = B._warp_pair(f0, f1, -s * pair.flow, -(1.0 - s) * pair.flow_bw)
-    e = cv2.blur(np.abs(w0 - w1).sum(-1), (2 * B.FUSE_RADIUS + 1,) * 2)        # [H, W]
-    np.testing.assert_array_equal(drawn[0.05][0], drawn[0.0][0])
-    np.testing.assert_allclose(drawn[0.05][1], drawn[0.0][1] * np.exp(-(e / 0.05) ** 2), atol=1e-5)
-    assert (drawn[0.05][1] < 0.5 * drawn[0.0][1]).any() and (drawn[0.05][1] > 0.9 * drawn[0.0][1]).any()
-    with pytest.raises(EndowaveError, match="between_confidence"):
-        validate_config(TrainConfig(between_confidence=-0.1), "cfg.toml")
-
-
 def _between_model_splat(scene, rt, tmp_path):
     """between_model_splat: the model's part of the drawn in-between target splats the pair's frames
     forward along the motion the model renders at their own times; off, it warps them backward."""
@@ -942,7 +916,6 @@ CHECKS = {
     "between_flows": _between_flows,
     "between_model": _between_model,
     "between_fuse": _between_fuse,
-    "between_confidence": _between_confidence,
     "between_model_splat": _between_model_splat,
     "between_flow_splat": _between_flow_splat,
     "between_motion_refresh": _between_motion_refresh,
