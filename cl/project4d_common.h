@@ -4,7 +4,7 @@
  * - 4D rotation R = M_left(q_l) M_right(q_r), M_left(q) the matrix of v -> q * v, M_right(q) of
  *   v -> v * q, with (x, y, z, t) read as the quaternion (w, x, y, z).  4x4 matrices are row-major.
  * - Culled Gaussians: see p4_forward.
- * Build options (-D): SH_DEGREE, NT (temporal frequencies), CHANNELS, TEASH_PERIOD, MARGINAL_CULL,
+ * Build options (-D): SH_DEGREE, NT (temporal frequencies), CHANNELS, TEASH_PERIOD, MARGINAL_CULL, LOWPASS,
  * P4_VW for the vector variant, and P4_SH_FACTORS (project4d_bwd: the SH gradient as factors, sh_grad.h).
  *
  * Two variants of the same maths (endowave_cl/ops/project.py chooses one from the device queries):
@@ -32,7 +32,9 @@
 #ifndef MARGINAL_CULL
 #define MARGINAL_CULL 0.05f /* culled when the marginal temporal weight is below this */
 #endif
-#define LOWPASS 0.3f               /* 3DGS low-pass added to the 2D covariance diagonal */
+#ifndef LOWPASS
+#define LOWPASS 0.1f        /* px^2 added to the 2D covariance diagonal (gaussians.py LOWPASS) */
+#endif
 #define SIGMA_TT_MIN 1e-12f        /* degenerate temporal variance: culled */
 #define RADIUS_MAX 1073741824.0f   /* stored int radius saturates at 2^30 */
 #define QUAT_NORM2_MIN 1e-24f      /* |q|^2 clamp so that q = 0 gives no NaN */

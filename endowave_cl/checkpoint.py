@@ -29,7 +29,11 @@ from .atomic import atomic_open
 from .errors import EndowaveError
 from .gaussians import PARAM_NAMES, Gaussians
 
-CHECKPOINT_FORMAT = 1
+# 2: the Gaussians are rendered with gaussians.LOWPASS = 0.1.  Format 1 (the 3DGS low-pass, 0.3) is
+# refused: its Gaussians were fitted to another footprint and would render differently here.
+CHECKPOINT_FORMAT = 2
+FORMAT_NOTES = {1: "format 1 was trained with the 3DGS low-pass of 0.3 px^2, which this version no longer "
+                   "renders; train it again with this version"}
 CHECKPOINT_RE = re.compile(r"^checkpoint_(\d+)\.npz$")
 
 
@@ -122,7 +126,9 @@ def load_checkpoint(path) -> Dict[str, Any]:
 
     fmt = int(need("format"))
     if fmt != CHECKPOINT_FORMAT:
-        raise EndowaveError(f"{path}: checkpoint format {fmt}, this version reads {CHECKPOINT_FORMAT}")
+        note = FORMAT_NOTES.get(fmt, "")
+        raise EndowaveError(f"{path}: checkpoint format {fmt}, this version reads {CHECKPOINT_FORMAT}"
+                            + (f" ({note})" if note else ""))
     params = {n: need(f"param/{n}") for n in PARAM_NAMES}
     _check_shapes(path, params)
     adam_state = None

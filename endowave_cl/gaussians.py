@@ -32,6 +32,12 @@ SH_DEGREE = 3          # L: spherical-harmonic degree (K = 16 bases)
 TEMPORAL_FREQS = 2     # NT: temporal frequencies n = 1..NT besides the constant n = 0
 TEASH_PERIOD = 2.0     # T in omega_n = 2 pi n / T, in normalised time units
 MARGINAL_CULL = 0.05   # a Gaussian whose marginal temporal weight is below this is skipped
+LOWPASS = 0.1          # px^2 added to the diagonal of every projected 2D covariance: the smallest
+                       # footprint a Gaussian can have (3DGS adds 0.3; 0.1 fits the frames closer
+                       # and renders the unseen ones sharper on the validation frames of every
+                       # shared scene, research/QUALITY.md finding 40).  A checkpoint records the
+                       # model's layout, and one trained with another value renders differently:
+                       # checkpoint.CHECKPOINT_FORMAT changes with it
 
 # Real spherical harmonics (3DGS constants and sign convention), degree 0..3; the kernels
 # (cl/project4d_common.h) hold the same values.

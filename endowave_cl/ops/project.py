@@ -13,7 +13,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .. import env     # every ENDOWAVE_* variable is parsed there, with a named error
-from ..gaussians import MARGINAL_CULL, TEASH_PERIOD
+from ..gaussians import LOWPASS, MARGINAL_CULL, TEASH_PERIOD
 from ..layout import ALPHA_MIN, CAM_SIZE, CHANNELS, tile_grid
 from .rasterize import VEC_WIDTH, raster_choice, simt_device
 from .util import f32_literal
@@ -133,6 +133,7 @@ def _dims(params):
 def _options(rt, degree: int, nt: int, channels: int):
     opts = [f"-DSH_DEGREE={degree}", f"-DNT={nt}", f"-DCHANNELS={channels}",
             f"-DTEASH_PERIOD={float(TEASH_PERIOD)!r}f", f"-DMARGINAL_CULL={float(MARGINAL_CULL)!r}f",
+            f"-DLOWPASS={f32_literal(LOWPASS)}",
             f"-DALPHA_MIN={f32_literal(ALPHA_MIN)}"]   # the tight tile rect (project4d.cl)
     # correctly rounded / and sqrt (where the device offers them; OpenCL 1.2 allows the option only
     # then) bring the float radius / rect closer to the torch reference at ceil / floor boundaries

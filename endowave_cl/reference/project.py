@@ -27,10 +27,9 @@ from typing import Dict, Optional
 
 import torch
 
-from ..gaussians import MARGINAL_CULL, TEASH_PERIOD, sh_basis_terms
+from ..gaussians import LOWPASS, MARGINAL_CULL, TEASH_PERIOD, sh_basis_terms
 from ..layout import ALPHA_MIN, TILE, tile_grid
 
-LOWPASS = 0.3          # added to the diagonal of the 2D covariance (3DGS anti-aliasing low-pass)
 SIGMA_TT_MIN = 1e-12   # temporal variance below this (std 1e-6 of the sequence) is degenerate: culled
 RADIUS_MAX = 1 << 30   # the stored int radius saturates here (the rect uses the float radius)
 # margins of the tight rect (cl/project4d_common.h p4_tight_rect): upper bound of ln, padding of q,

@@ -153,6 +153,21 @@ def test_inconsistent_checkpoint_names_the_entry(tmp_path):
         load_checkpoint(tmp_path / "shape.npz")
 
 
+def test_checkpoint_of_another_format_is_refused_with_the_reason(tmp_path):
+    """A format-1 checkpoint (fitted to the 3DGS low-pass 0.3) would render differently with this
+    version's LOWPASS: refused in one line that names the file and why; an unknown format too."""
+    g = Gaussians.random(4)
+    p = save_checkpoint(tmp_path / "s.npz", g, None, 1, {}, {})
+    with np.load(p) as z:
+        d = {k: z[k] for k in z.files}
+    for fmt, why in ((1, "low-pass of 0.3"), (99, "")):
+        d["format"] = np.array(fmt)
+        np.savez(tmp_path / f"f{fmt}.npz", **d)
+        with pytest.raises(EndowaveError, match=rf"f{fmt}\.npz: checkpoint format {fmt}, this version reads 2") as e:
+            load_checkpoint(tmp_path / f"f{fmt}.npz")
+        assert why in str(e.value) and "\n" not in str(e.value)
+
+
 def test_failed_write_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     g = Gaussians.random(5, seed=2)
     p = save_checkpoint(tmp_path / "checkpoint_0000001.npz", g, None, 1, {}, {})
