@@ -86,9 +86,9 @@ def run(args) -> int:
     title = (f"{run_dir.name}: {Path(r.scene.path).name}, {len(r.gaussians)} Gaussians, step {r.step}, "
              f"{len(r.scene.frames)} frames")
     app = ViewerApp(model, args.host, args.port, title).start()
-    print(f"viewing {run_dir} ({title}) on {rt.name}")
-    print(f"open {app.url} in a browser; Ctrl-C to stop", flush=True)
-    try:
+    try:   # the address is printed inside: a Ctrl-C right after it (before the loop) is a stop too
+        print(f"viewing {run_dir} ({title}) on {rt.name}")
+        print(f"open {app.url} in a browser; Ctrl-C to stop", flush=True)
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt as e:
