@@ -252,12 +252,14 @@ class BetweenSettings:
                                     # the training frame beyond the pair on each side (tissue that
                                     # speeds up or slows down); "linear", at constant velocity
                                     # along the pair's flows (research/QUALITY.md finding 31)
-    levels: int = 0                 # 0: an in-between step's fraction s is drawn from a continuous
-                                    # distribution and its target built on the host at every step;
-                                    # K >= 2: s is moved onto the grid j / K (j = 1 .. K - 1) and each
-                                    # pair's flow prediction at a grid point is built once and kept
-                                    # (float16, up to 2 GiB: train/between.py TARGET_CACHE_BYTES), so
-                                    # that later in-between steps cost little more than plain ones
+    levels: int = 8                 # an in-between step's fraction s is moved onto the grid j / K
+                                    # (j = 1 .. K - 1) and each pair's flow prediction at a grid
+                                    # point is built once and kept (float16, up to 2 GiB:
+                                    # train/between.py TARGET_CACHE_BYTES), so that later in-between
+                                    # steps cost little more than plain ones; 8: the validation
+                                    # figures of the continuous draw, in 6-15 % less time
+                                    # (research/QUALITY.md finding 41); 0: s drawn from a
+                                    # continuous distribution, its target built at every step
     flows: str = "dis,farneback"          # further flow estimators (comma-separated,
                                     # data/flow.py METHODS) whose interpolations are fused with
                                     # flow_method's in the in-between target, per pixel by how well

@@ -23,9 +23,10 @@ from endowave_cl.train.config import KEYS, TrainConfig, load_config
 from endowave_cl.train.densify import densify_and_prune, logit
 
 QUICK = dict(init_points=50, use_flow=False, init_velocity=False, between_prob=0.0,
-             between_flows="", between_path="linear")
-# cheap trainers: no flow; checks of one in-between key use one estimator and straight paths (the
-# between_path check draws both kinds)
+             between_flows="", between_path="linear", between_levels=0)
+# cheap trainers: no flow; checks of one in-between key use one estimator, straight paths (the
+# between_path check draws both kinds) and the continuous draw, whose target is exact at any s (the
+# between_levels check keeps them per grid point)
 
 
 @pytest.fixture(scope="module")
