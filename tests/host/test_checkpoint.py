@@ -14,15 +14,15 @@ def test_config_defaults_follow_design():
             c.lr_rotation) == (6.4e-4, 6.4e-6, 2.5e-3, 0.05, 5e-3, 1e-3)
     assert (c.densify_from, c.densify_every, c.densify_grad_threshold, c.prune_opacity,
             c.opacity_reset_every) == (500, 100, 0.0, 0.005, 3000)
-    # 0: 3DGS's 2e-4 up to 320x256, scaled by sqrt(320x256 / pixels) above (research/QUALITY.md finding 27)
-    assert DENSIFY_GRAD_THRESHOLD == 2e-4
-    assert densify_threshold_for(160, 128) == densify_threshold_for(320, 256) == 2e-4
-    assert densify_threshold_for(640, 512) == pytest.approx(1e-4, rel=1e-12)
-    assert densify_threshold_for(1280, 1024) == pytest.approx(5e-5, rel=1e-12)
+    # 0: 1.4e-4 up to 320x256, scaled by sqrt(320x256 / pixels) above (research/QUALITY.md findings 27, 42)
+    assert DENSIFY_GRAD_THRESHOLD == 1.4e-4
+    assert densify_threshold_for(160, 128) == densify_threshold_for(320, 256) == 1.4e-4
+    assert densify_threshold_for(640, 512) == pytest.approx(7e-5, rel=1e-12)
+    assert densify_threshold_for(1280, 1024) == pytest.approx(3.5e-5, rel=1e-12)
     c = c.resolve_density(640, 512)
-    assert c.densify_grad_threshold == pytest.approx(1e-4, rel=1e-12)
+    assert c.densify_grad_threshold == pytest.approx(7e-5, rel=1e-12)
     c = c.resolve_density(320, 256)                # resolved once: a given threshold stays
-    assert c.densify_grad_threshold == pytest.approx(1e-4, rel=1e-12)
+    assert c.densify_grad_threshold == pytest.approx(7e-5, rel=1e-12)
     # the depth loss's weight is a tenth of DESIGN.md's, in scene units (finding 18)
     assert (c.lambda_rgb, c.lambda_dssim, c.lambda_depth) == (1.0, 0.2, 0.1)
 
