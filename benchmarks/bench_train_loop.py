@@ -19,9 +19,9 @@ binning's pair count, select's live-row count) per step:
 With between_levels >= 2 every pair's flow prediction at every grid point is built and kept
 before the windows (a long run's steady state).  Before the late window every pair's motion is
 rendered once with ages spread over between_motion_refresh, so that the window sees refreshes at
-about their steady rate.  The Gaussians
-are the initial ones (or --checkpoint's); the step number sets the schedule (in-between chance, model
-blend, learning rates), the Gaussians do not densify.  --full-run trains the whole default pulling
+about their steady rate.  The Gaussians are the initial ones (or --checkpoint's); the step number
+sets the schedule (in-between chance, model blend, learning rates), the Gaussians do not densify.
+--full-run trains the whole default pulling
 run (`endowave-cl train SCENE --downscale 2`) in a temporary folder and prints its train_seconds.
 
     python benchmarks/bench_train_loop.py [--steps 40] [--early 1000] [--late 4000] [--checkpoint CK.npz]
