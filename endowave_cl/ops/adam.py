@@ -148,10 +148,8 @@ class DeviceAdam:
 
     # -- the update ---------------------------------------------------------------------------
     def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None,
-             visible=None, rows=None, grad_scale: float = 1.0) -> None:
+             visible=None, rows=None) -> None:
         """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept.
-        grad_scale: every gradient is multiplied by it before it enters the moments (a step's
-        weight, train/balance.py); the kernel takes it folded into 1 - b1 and 1 - b2.
         grads["sh"] may be an ops.project.ShGradFactors (render_backward(..., sh_factors=True)):
         the kernel forms the SH gradient from its factors, the same values as the full array.
         visible: None, or an int32 device array [N] (the step's projected radius): rows where it
@@ -167,8 +165,6 @@ class DeviceAdam:
             raise EndowaveError(f"Adam: rows must be int32 [L] with L <= {n_rows}, got {tuple(rows.shape)} {rows.dtype}")
         if visible is not None and (tuple(visible.shape) != (n_grad,) or visible.dtype != np.int32):
             raise EndowaveError(f"Adam: visible must be int32 [{n_grad}], got {tuple(visible.shape)} {visible.dtype}")
-        if not (grad_scale > 0.0 and math.isfinite(grad_scale)):
-            raise EndowaveError(f"Adam: grad_scale must be a finite number > 0, got {grad_scale}")
         step = self.step_count + 1  # counted once the arguments are valid
         b1, b2 = self.betas
         inv_bc1 = 1.0 / (1.0 - b1 ** step)
@@ -213,9 +209,8 @@ class DeviceAdam:
         self.step_count = step
         if total == 0:
             return
-        gs = float(grad_scale)
-        args += [np.float32(b1), np.float32(b2), np.float32((1.0 - b1) * gs), np.float32((1.0 - b2) * gs * gs),
-                 np.float32(self.eps), np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
+        args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
+                 np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
         vis = [self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None)]
         if rows is None:
             self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args, *vis)

@@ -6,15 +6,13 @@ import numpy as np
 
 
 def adam_step_ref(param: np.ndarray, grad: np.ndarray, exp_avg: np.ndarray, exp_avg_sq: np.ndarray,
-              lr: np.ndarray, step: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15,
-              grad_scale: float = 1.0):
+              lr: np.ndarray, step: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15):
     """One Adam step of one group in float64; returns (param, exp_avg, exp_avg_sq) as float32.
-    The gradient is multiplied by grad_scale first (a step's weight, train/balance.py).
 
     lr: per-element learning rate, same shape as param (elements with lr 0 are left as they are,
     moments included).  step: the step number after this update (1 for the first).
     """
-    p, g = param.astype(np.float64), grad.astype(np.float64) * float(grad_scale)
+    p, g = param.astype(np.float64), grad.astype(np.float64)
     m, v = exp_avg.astype(np.float64), exp_avg_sq.astype(np.float64)
     lr = np.broadcast_to(np.asarray(lr, np.float64), p.shape)
     live = lr != 0

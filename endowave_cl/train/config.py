@@ -201,11 +201,6 @@ class LossSettings:
                                         # (bounded gradient; see reference/losses.py); inf: pure squared
     lambda_wavelet: float = 1.0         # not in the paper: the wavelet term is a mean squared
                                         # error per sub-band coefficient (MSE scale), weight 1
-    frame_balance: float = 0.0          # each step's gradient is weighted by (G / L)^this, L the
-                                        # running L1 loss of the step's frame (or in-between pair),
-                                        # G the geometric mean of those of its kind (train/balance.py):
-                                        # 1 follows the mean of the frames' log losses, as the mean
-                                        # PSNR over frames weighs them; 0: every step alike
     use_depth: bool = True
     use_flow: bool = True
     use_wavelet: bool = True
@@ -545,7 +540,6 @@ RANGES = {
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,
-    "frame_balance": (0, 4, True, True),
     "sh_degree": (-1, 3, True, True), "flow_max_pixels": _NON_NEGATIVE,
     # q >= 1 (q = 1: dyadic); at least one level; band weights like loss weights
     "wavelet_q": _AT_LEAST_1, "wavelet_levels": _AT_LEAST_1, "wavelet_weight_ll": _NON_NEGATIVE,

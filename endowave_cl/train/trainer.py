@@ -38,7 +38,6 @@ from ..ops.util import nonfinite_flag, read_back
 from ..progress import hold_rate, progress as progress_bar, restart_rate
 from ..render import DEPTH, FLOW, accumulate_stats, render, render_backward
 from . import curves
-from .balance import FrameBalance
 from .between import BetweenSampler
 from .between_device import motion_on_device
 from .budget import MIN_TIMED_STEPS, RATE_WINDOW, WARMUP_STEPS, BudgetPlan
@@ -133,7 +132,6 @@ class Trainer:
             ck = None
         self.params = upload(rt, g)
         self.adam = DeviceAdam(rt, self.params, self.group_lrs(self.step))
-        self.balance = FrameBalance(cfg.frame_balance)     # the steps' weights (train/balance.py)
         if ck is not None and ck.get("adam_state"):
             self.adam.load_state_dict(ck["adam_state"])
         self._reset_stats()
@@ -220,7 +218,7 @@ class Trainer:
         first selection and binning read their counts to size their buffers.  The camera is
         uploaded once (project4d; project4d_bwd reuses its buffer)."""
         frame, tgt = self.scene.frames[k], self.targets[k]
-        return self._step(frame.camera, frame.time, tgt.next_time, tgt.dev, f"frame {k}", kind="plain")
+        return self._step(frame.camera, frame.time, tgt.next_time, tgt.dev, f"frame {k}")
 
     def train_step_between(self) -> Optional[Dict[str, float]]:
         """One optimisation step at a time between two training frames, supervised by the frame the
@@ -248,8 +246,7 @@ class Trainer:
         if drawn is None:
             return None
         camera, t, dev = drawn
-        return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"),   # None: nothing supervised
-                          kind="between")
+        return self._step(camera, t, None, dev, f"time {t:.4f}", out=forward.get("out"))   # None: nothing supervised
 
     def schedule_step(self, order: List[int]):
         """One step as the schedule draws it (train's loop; benchmarks/bench_train_loop.py times it):
@@ -276,12 +273,9 @@ class Trainer:
             return motion_on_device(self.rt, out.features, FLOW.start)
         return out.features.get()[..., FLOW]
 
-    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None,
-              kind: str = "plain") -> Optional[Dict[str, float]]:
+    def _step(self, camera, t: float, t_next: Optional[float], dev, what: str, out=None) -> Optional[Dict[str, float]]:
         """render at t (flow to t_next) -> losses against dev (DeviceTargets) -> adjoints -> Adam.
         out: the step's forward when it was rendered already (train_step_between).
-        kind ("plain" or "between"): whose running loss weighs the step's gradient in Adam
-        (frame_balance, train/balance.py).
         The render waits for neither its live-row count nor its pair count: the read-back is the
         step's wait, and where the rows or the pairs overflowed their buffers (ops/select.py,
         ops/binning.py) the step is done again from a checked render before anything is changed (the densification statistics are accumulated
@@ -304,11 +298,9 @@ class Trainer:
         accumulate_stats(self.rt, out, self.stats)
         total, parts = pending.finish(host)
         self._check_finite(total, bool(host["nonfinite"][0]), what)
-        weight = self.balance.weight(kind, parts["l1"])                                # frame_balance
-        self.balance.update(kind, parts["l1"])
         self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step),  # Adam (v_means -> means)
                        visible=out.proj.radius if self.cfg.adam_skip_culled else None,
-                       rows=None if out.live is None else out.live.rows, grad_scale=weight)
+                       rows=None if out.live is None else out.live.rows)
         self.step += 1
         return parts
 

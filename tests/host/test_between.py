@@ -300,7 +300,7 @@ def test_trainer_blends_the_models_motion_after_densification(rt, tiny_scene, tm
                 calls.append((tr.step, out.t, out.t_flow, disp.shape))
             return disp
         tr.rendered_motion = spy
-        tr._step = lambda cam, t, t_next, dev, what, out=None, **kw: (forwards.append(out), real_step(cam, t, t_next, dev, what, out, **kw))[1]
+        tr._step = lambda cam, t, t_next, dev, what, out=None: (forwards.append(out), real_step(cam, t, t_next, dev, what, out))[1]
         tr.train(progress=False)
         per_step = 3 if splat else 1     # with the splat, two more renders at the pair's frames
         assert len(calls) == want * per_step

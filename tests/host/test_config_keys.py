@@ -620,26 +620,6 @@ def _wavelet_changes(b, n):
 
 
 
-def _frame_balance(scene, rt, tmp_path):
-    """frame_balance: Adam gets each step's weight (G / L)^power (train/balance.py), L the step's
-    L1 and G the running geometric mean of its kind's earlier ones; 0: every weight 1."""
-    k0, k1, k2 = scene.train_indices[:3]
-    for power in (0.0, 1.0):
-        tr = _trainer(scene, rt, tmp_path / str(power), frame_balance=power)
-        scales, real = [], tr.adam.step
-        tr.adam.step = lambda *a, **kw: (scales.append(kw["grad_scale"]), real(*a, **kw))[1]
-        l1 = [tr.train_step(k)["l1"] for k in (k0, k1, k2)]
-        if power == 0.0:
-            assert scales == [1.0, 1.0, 1.0]
-            continue
-        g = math.log(l1[0])
-        g = 0.98 * g + 0.02 * math.log(l1[1])
-        assert scales[0] == 1.0
-        assert scales[1] == pytest.approx(l1[0] / l1[1], rel=1e-9)
-        assert scales[2] == pytest.approx(math.exp(g) / l1[2], rel=1e-9)
-        assert scales[1] != 1.0
-
-
 def _between_s(scene, rt, tmp_path):
     """between_s: the drawn step's time is the pair's frame times mixed at the fraction that
     distribution gives from the same generator (triangular: the mean of two uniform draws); other
@@ -929,7 +909,6 @@ CHECKS = {
     "lambda_depth": _loss_effect("lambda_depth", 3.0, _total_changes("depth", 2.9)),
     "lambda_flow": _loss_effect("lambda_flow", 0.5, _total_changes("flow", 0.49)),
     "flow_huber_delta": _loss_effect("flow_huber_delta", math.inf, _flow_huber_delta),
-    "frame_balance": _frame_balance,
     "between_prob": _between_prob,
     "between_anneal_final": _between_anneal_final,
     "between_s": _between_s,

@@ -21,9 +21,8 @@ def _grads(g: Gaussians, rng) -> dict:
             for n, a in g.as_dict().items()}
 
 
-def _run_both(rt, g, steps, lr_sched, seed=0, scales=None):
-    """Run the device Adam and the reference side by side; returns (device params, ref params).
-    scales: per step, the gradient scale both are given (None: 1)."""
+def _run_both(rt, g, steps, lr_sched, seed=0):
+    """Run the device Adam and the reference side by side; returns (device params, ref params)."""
     rng = np.random.default_rng(seed)
     params = upload(rt, g)
     opt = DeviceAdam(rt, params, lr_sched(0))
@@ -33,11 +32,10 @@ def _run_both(rt, g, steps, lr_sched, seed=0, scales=None):
     for s in range(steps):
         lrs = lr_sched(s)
         grads = _grads(g, rng)
-        gs = 1.0 if scales is None else scales[s]
-        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, lrs, grad_scale=gs)
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, lrs)
         for n in PARAM_NAMES:
             lr = element_lrs(n, ref[n].shape, opt.lrs)
-            ref[n], m[n], v[n] = adam_step_ref(ref[n], grads[n], m[n], v[n], lr, s + 1, grad_scale=gs)
+            ref[n], m[n], v[n] = adam_step_ref(ref[n], grads[n], m[n], v[n], lr, s + 1)
     out = {n: params[n].get() for n in PARAM_NAMES}
     st = opt.state_dict()
     for n in PARAM_NAMES:
@@ -65,28 +63,6 @@ def test_adam_matches_reference_over_steps_with_changing_lrs(rt):
         np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
     np.testing.assert_array_equal(dev["scales"], g.scales)  # lr 0: untouched
     assert not np.array_equal(dev["opacity"], g.opacity)
-
-
-def test_adam_grad_scale_matches_reference(rt):
-    """A step's gradient scale (train/balance.py weights) enters the moments as the reference
-    scales its gradient; steps of unequal scales move the parameters differently from unscaled ones."""
-    g = Gaussians.random(small(37, 5), seed=4)
-    scales = [1.0, 3.5, 0.25, 2.0, 0.6]
-    dev, ref = _run_both(rt, g, steps=len(scales), lr_sched=lambda s: LRS, scales=scales)
-    plain, _ = _run_both(rt, g, steps=len(scales), lr_sched=lambda s: LRS)
-    for n in PARAM_NAMES:
-        np.testing.assert_allclose(dev[n], ref[n], rtol=1e-5, atol=2e-6, err_msg=n)
-    assert not np.allclose(dev["opacity"], plain["opacity"], rtol=1e-5, atol=2e-6)
-
-
-@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
-def test_adam_grad_scale_refused(rt, bad):
-    g = Gaussians.random(5, seed=1)
-    opt = DeviceAdam(rt, upload(rt, g), LRS)
-    grads = {n: _to_dev(rt, a) for n, a in _grads(g, np.random.default_rng(0)).items()}
-    with pytest.raises(EndowaveError, match="grad_scale must be"):
-        opt.step(grads, grad_scale=bad)
-    assert opt.step_count == 0
 
 
 def test_adam_frozen_lanes_inside_a_run(rt):
