@@ -24,7 +24,7 @@ class WaveletConfig:
              experiment any LL weight lowered PSNR (the L1 term already fits low frequencies; LL
              of level 1 still feeds level 2's detail bands) and an overall detail weight of 16-64
              was best.  They are absolute, scaled so the term is of the order of an L1 image
-             loss: add it to L1 (or 0.8 L1 + 0.2 D-SSIM) with weight 1.
+             loss: add it to the colour loss (L1, or L1 mixed with D-SSIM) with weight 1.
     border:  "reflect": whole-sample symmetric extension (-1 -> 1, N -> N - 2) at every border;
              the only rule the kernels implement.
     """

@@ -118,7 +118,8 @@ def test_image_losses_total_and_switches():
     total, parts = image_losses_ref(pred, gt, cfg, wavelet_loss=wav)
     want = parts["rgb"] + 0.5 * parts["depth"] + 0.01 * parts["flow"] + 2.0 * parts["wavelet"]
     assert parts["total"] == pytest.approx(want, rel=1e-6)
-    assert parts["rgb"] == pytest.approx(0.8 * parts["l1"] + 0.2 * (1 - parts["ssim"]), rel=1e-6)
+    d = cfg.lambda_dssim
+    assert parts["rgb"] == pytest.approx((1 - d) * parts["l1"] + d * (1 - parts["ssim"]), rel=1e-6)
     total.backward()
     assert all(pred[k].grad is not None and pred[k].grad.abs().sum() > 0 for k in pred)
     # switches and missing inputs leave terms out
