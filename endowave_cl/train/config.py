@@ -190,7 +190,7 @@ class LossSettings:
     """The loss terms and their weights (train/device_losses.py, reference/losses.py)."""
     lambda_rgb: float = 1.0
     lambda_dssim: float = 0.4           # L_rgb = (1 - 0.4) L1 + 0.4 D-SSIM; 3DGS's 0.2 gives the
-                                        # same validation PSNR on the real scenes and 4-15 % worse
+                                        # same validation PSNR on the real scenes and 1-15 % worse
                                         # LPIPS on every shared scene (research/QUALITY.md finding 44)
     lambda_depth: float = 0.1           # L1 of the depth in scene units (data/scene.py: the median
                                         # depth is 4); DESIGN.md's 1 holds the depth to 0.25 % for
