@@ -22,10 +22,13 @@ rendered once with ages spread over between_motion_refresh, so that the window s
 about their steady rate.  The Gaussians are the initial ones (or --checkpoint's); the step number
 sets the schedule (in-between chance, model blend, learning rates), the Gaussians do not densify.
 --full-run trains the whole default pulling
-run (`endowave-cl train SCENE --downscale 2`) in a temporary folder and prints its train_seconds.
+run (`endowave-cl train SCENE --downscale 2`) in a temporary folder and prints its train_seconds;
+--blocking-too then trains it again with the loop that waits for every step's outcome.  (The
+windows time Trainer.schedule_step, which waits for its step: what the loop's deferred read saves
+shows in the full runs only.)
 
     python benchmarks/bench_train_loop.py [--steps 40] [--early 1000] [--late 4000] [--checkpoint CK.npz]
-                                          [--set KEY=VALUE ...] [--both-paths] [--full-run]
+                                          [--set KEY=VALUE ...] [--both-paths] [--full-run [--blocking-too]]
 
 --both-paths times the in-between targets built on the device (train/between_device.py) and on the
 host (OpenCV and numpy), alternated round by round, so that both see the same minutes' load.
@@ -163,19 +166,22 @@ def report(rows, title: str):
     return med
 
 
-def full_run(scene: Path, downscale: float, sets) -> None:
+def full_run(scene: Path, downscale: float, sets, blocking: bool = False) -> None:
     """Train the default run in a temporary folder and print its training time (train_seconds:
-    the loop without kernel builds, trainer.py) and the final test PSNR."""
+    the loop without kernel builds, trainer.py) and the final test PSNR.  blocking: with
+    $ENDOWAVE_BLOCKING_STEPS=1, the loop that waits for every step's outcome before the next."""
+    env = dict(os.environ, ENDOWAVE_BLOCKING_STEPS="1" if blocking else "0")
     with tempfile.TemporaryDirectory() as out:
         cmd = ["endowave-cl", "train", str(scene), "--downscale", f"{downscale:g}", "--out", out]
         for item in sets:
             cmd += ["--set", item]
-        print(f"full run: {' '.join(cmd)}; load average {load()}")
+        loop = "waiting at every step" if blocking else "each step read behind the next"
+        print(f"full run ({loop}): {' '.join(cmd)}; load average {load()}")
         t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
         wall = time.perf_counter() - t0
         log = json.loads((Path(out) / "train_log.json").read_text())
-        m = log.get("metrics", log)
+        m = log.get("final") or log
         print(f"  train_seconds {m.get('train_seconds', float('nan')):.1f} s (process {wall:.1f} s), "
               f"{m.get('step')} steps, test PSNR {m.get('psnr', float('nan')):.2f} dB; load average {load()}")
 
@@ -197,6 +203,9 @@ def main(argv=None):
                          "(the reference path), alternated in each round (by default only where "
                          "train/between.py targets_on_device puts them)")
     ap.add_argument("--full-run", action="store_true", help="also time the whole default run's training")
+    ap.add_argument("--blocking-too", action="store_true",
+                    help="with --full-run: then the same run with the loop that waits for every step's "
+                         "outcome ($ENDOWAVE_BLOCKING_STEPS=1), for the comparison")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
 
@@ -267,6 +276,8 @@ def main(argv=None):
                       f"{load()})")
     if args.full_run:
         full_run(scene_path, args.downscale, args.set)
+        if args.blocking_too:
+            full_run(scene_path, args.downscale, args.set, blocking=True)
     return 0
 
 

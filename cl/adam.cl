@@ -16,6 +16,9 @@
  * radius: culled at this step's time, so its gradient is 0): its parameters and moments keep their
  * values instead of decaying the moments and moving on momentum (gsplat's SelectiveAdam).  The
  * bias correction still counts every step.
+ * gated: the whole update is left out where skip[0] != 0 (cl/util.cl step_gate: a step whose
+ * outcome the host reads later, found non-finite or overflowed on the device); the host then
+ * does not count the step either (ops/adam.py DeviceAdam.step(skip=...)).
  *
  * adam_step_rows (below) updates only the rows a step selected (ops/select.py), their gradients
  * given as compact arrays.
@@ -201,7 +204,10 @@ __kernel void adam_step(GROUP_ARGS(0), GROUP_ARGS(1), GROUP_ARGS(2), GROUP_ARGS(
                         const float omb1, const float omb2, const float eps,
                         const float inv_bc1, const float inv_sqrt_bc2,
                         __global const int *visible,   /* [N] projected radius (0: culled) */
-                        const int skip_culled) {
+                        const int skip_culled,
+                        __global const int *skip,      /* [1] the step gate (cl/util.cl step_gate) */
+                        const int gated) {
+    if (gated && skip[0] != 0) return;   /* a skipped step: nothing changes */
     int i = get_global_id(0);
     __global const int *vis = skip_culled ? visible : 0;
     GROUP_DISPATCH(0)
@@ -263,9 +269,12 @@ __kernel void adam_step_rows(ROW_ARGS(0), ROW_ARGS(1), ROW_ARGS(2), ROW_ARGS(3),
                              const int n_rows,
                              __global const int *rows,      /* [L] rows of the full arrays */
                              __global const int *visible,   /* [L] compact projected radius */
-                             const int skip_culled) {
+                             const int skip_culled,
+                             __global const int *skip,      /* [1] the step gate (cl/util.cl step_gate) */
+                             const int gated) {
     const int i = get_global_id(0);
     if (i >= n_rows) return;
+    if (gated && skip[0] != 0) return;   /* a skipped step: nothing changes */
 #if HAVE_PREFETCH && ROWS_AHEAD > 0
     /* the row ROWS_AHEAD work-items on: its lines in every array, requested while this row is
      * updated (the selected rows are scattered, so the hardware's stream prefetch misses them) */

@@ -7,6 +7,7 @@
  *   max_radius  = max(max_radius, radius)
  * has_rows: the step ran on selected rows (ops/select.py), and entry i of v_means2d / radius
  * belongs to Gaussian rows[i] of the statistics; else to Gaussian i (rows is not read).
+ * gated: nothing is accumulated where skip[0] != 0 (cl/util.cl step_gate).
  */
 __kernel void accumulate_densify_stats(__global const float2 *v_means2d, /* [L, 2] */
                                        __global const int *radius,       /* [L] */
@@ -15,10 +16,13 @@ __kernel void accumulate_densify_stats(__global const float2 *v_means2d, /* [L, 
                                        const int has_rows,
                                        __global float *grad_accum,       /* [N] */
                                        __global int *count,              /* [N] */
-                                       __global float *max_radius)       /* [N] */
+                                       __global float *max_radius,       /* [N] */
+                                       __global const int *skip,         /* [1] the step gate */
+                                       const int gated)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
+    if (gated && skip[0] != 0) return;   /* a skipped step (cl/util.cl step_gate): nothing changes */
     const int r = radius[i];
     if (r <= 0) return;
     const int j = has_rows ? rows[i] : i;

@@ -59,3 +59,29 @@ __kernel void any_nonfinite_f32(__global const float *x0, const int n0, __global
     if (bad) atomic_or(flag, 1);
 }
 #endif  /* NF_RUN */
+
+/* The training step's gate (ops/util.py step_gate), one work-item: skip[0] |= the reasons the
+ * step's update must not be applied, so that Adam and the densification statistics, which read
+ * skip[0], leave everything as it was.  Sticky: a later step's gate keeps the bits, so every step
+ * enqueued behind a skipped one is skipped too, until the host has read them and cleared skip.
+ *   GATE_NONFINITE   the gradients or the loss sums hold a NaN or an Inf (nonfinite_grads[0] or
+ *                    nonfinite_loss[0] != 0: ops/util.py nonfinite_flag of each)
+ *   GATE_ROWS        the live rows overflowed their buffer: rows_count[rows_at] > rows_cap
+ *   GATE_PAIRS       the binning's pairs overflowed theirs: pairs_count[pairs_at] > pairs_cap
+ *   GATE_SUPERVISED  the target supervises no pixel (supervised[0] == 0, where check_supervised)
+ * A capacity < 0 leaves its test out (a count the host knew when it sized the buffer). */
+#ifdef GATE_NONFINITE   /* built with the bits of ops/util.py GATE_BITS */
+__kernel void step_gate(__global const int *nonfinite_grads, __global const int *nonfinite_loss,
+                        __global const int *rows_count, const int rows_at,
+                        const int rows_cap, __global const int *pairs_count, const int pairs_at,
+                        const int pairs_cap, __global const int *supervised, const int check_supervised,
+                        __global int *skip) {
+    if (get_global_id(0) != 0) return;
+    int s = skip[0];
+    if (nonfinite_grads[0] != 0 || nonfinite_loss[0] != 0) s |= GATE_NONFINITE;
+    if (rows_cap >= 0 && rows_count[rows_at] > rows_cap) s |= GATE_ROWS;
+    if (pairs_cap >= 0 && pairs_count[pairs_at] > pairs_cap) s |= GATE_PAIRS;
+    if (check_supervised && supervised[0] == 0) s |= GATE_SUPERVISED;
+    skip[0] = s;
+}
+#endif  /* GATE_NONFINITE */

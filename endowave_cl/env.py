@@ -20,6 +20,8 @@ Variables (unset or empty = the default):
   ENDOWAVE_RASTER_VW          4 | 8 | 16 (2 too, for tests)
   ENDOWAVE_RASTER_BW          1 | 2 | 4 | 8 | 16 (must divide the lanes)
   ENDOWAVE_NO_SELECT          a true flag: training renders every Gaussian
+  ENDOWAVE_BLOCKING_STEPS     a true flag: the training loop waits for every step's outcome
+                              before the next (the same results; train/trainer.py)
   ENDOWAVE_BETWEEN_TARGET     auto | device | host: where in-between targets are built (auto: the
                               device on a GPU, the host on a CPU device; train/between.py)
   ENDOWAVE_PROGRESS           bar | plain | off
@@ -127,6 +129,7 @@ PARSERS: Dict[str, Callable[[str, str], object]] = {
     "ENDOWAVE_RASTER_VW": _int_in(2, 4, 8, 16),
     "ENDOWAVE_RASTER_BW": _int_in(1, 2, 4, 8, 16),
     "ENDOWAVE_NO_SELECT": _flag,
+    "ENDOWAVE_BLOCKING_STEPS": _flag,
     "ENDOWAVE_BETWEEN_TARGET": _choice("auto", "device", "host"),
     "ENDOWAVE_PROGRESS": _choice("bar", "plain", "off"),
     "ENDOWAVE_PROGRESS_INTERVAL": _positive_float(86400.0),

@@ -153,14 +153,15 @@ def render_backward(rt, params: Dict[str, object], out: RenderOutput, v_features
     return grads
 
 
-def accumulate_stats(rt, out: RenderOutput, densify_stats: Dict[str, object]) -> None:
+def accumulate_stats(rt, out: RenderOutput, densify_stats: Dict[str, object], skip=None) -> None:
     """The densification statistics of the render's adjoint (ops.rasterize.accumulate_densify_stats
     of out.v_means2d, which render_backward left): render_backward(densify_stats=...) calls it, and
-    the training step calls it itself once it has seen that the render did not overflow."""
+    the training step calls it itself once it has seen that the render did not overflow, or with
+    the step's gate (skip: ops.util.step_gate) before it knows."""
     if out.v_means2d is None:
         raise ValueError("accumulate_stats: render_backward has not run on this render")
     p, cam = out.proj, out.camera
     if int(p.radius.shape[0]):
         accumulate_densify_stats(rt, out.v_means2d, p.radius, cam.width, cam.height, densify_stats["grad_accum"],
                                  densify_stats["count"], densify_stats["max_radius"],
-                                 rows=None if out.live is None else out.live.rows)
+                                 rows=None if out.live is None else out.live.rows, skip=skip)

@@ -17,7 +17,9 @@
 #      beside its wall time; on the frames of --scene DIR, else on ../shared's pulling frames when
 #      they are beside the checkout, else on a synthetic 640x512 scene), and
 #      benchmarks/bench_train_loop.py --both-paths (the schedule's plain and in-between steps, the
-#      in-between targets built on the device and on the host; real frames only);
+#      in-between targets built on the device and on the host; real frames only), and on a GPU
+#      (not --quick) the whole default pulling run twice, the loop reading each step's outcome
+#      behind the next and the loop waiting at every step ($ENDOWAVE_BLOCKING_STEPS=1);
 #   5. writes everything to one report file (--out, default gpu_check_<host>_<date>.txt).
 #
 # --dry-run: when no GPU is found (or always, with --dry-run), run every step on whatever device
@@ -199,6 +201,11 @@ run "$PY" "$ROOT/benchmarks/bench_train_step.py" --kernels --runs "$STEPS" --war
 section "4f. benchmarks/bench_train_loop.py (the schedule's steps per kind; in-between targets on the device and on the host)"
 run "$PY" "$ROOT/benchmarks/bench_train_loop.py" --both-paths --steps $((STEPS * 4)) ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} \
     || FAILED+=("bench_train_loop")
+if [ $GPU -eq 1 ] && [ $DRY -eq 0 ] && [ $QUICK -eq 0 ]; then
+    section "4g. The default pulling run, each step's outcome read behind the next, then waiting at every step"
+    run "$PY" "$ROOT/benchmarks/bench_train_loop.py" --steps 1 --warmup 0 --full-run --blocking-too \
+        ${SCENE_ARGS[@]+"${SCENE_ARGS[@]}"} || FAILED+=("bench_train_loop --full-run")
+fi
 
 section "done"
 if [ ${#FAILED[@]} -eq 0 ]; then

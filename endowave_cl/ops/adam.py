@@ -148,7 +148,7 @@ class DeviceAdam:
 
     # -- the update ---------------------------------------------------------------------------
     def step(self, grads: Mapping[str, "object"], lrs: Optional[Mapping[str, float]] = None,
-             visible=None, rows=None) -> None:
+             visible=None, rows=None, skip=None) -> None:
         """One Adam step; ``lrs`` (optional) updates some learning rates first and is kept.
         grads["sh"] may be an ops.project.ShGradFactors (render_backward(..., sh_factors=True)):
         the kernel forms the SH gradient from its factors, the same values as the full array.
@@ -156,7 +156,10 @@ class DeviceAdam:
         is 0 are left untouched, parameters and moments.
         rows: None, or an int32 device array [L] of row indices (ops.select.LiveRows.rows): the
         gradients (and visible) are then compact, [L, ...], row i of them belonging to parameter
-        row rows[i]; every other row is left untouched (cl/adam.cl adam_step_rows)."""
+        row rows[i]; every other row is left untouched (cl/adam.cl adam_step_rows).
+        skip: None, or the step gate, an int32 device array [1] (ops.util.step_gate): where it is
+        not 0 when the kernel runs nothing changes.  The step is counted here all the same (the
+        bias corrections of later steps): the caller that finds it skipped sets step_count back."""
         if lrs:
             self.lrs.update({k: float(v) for k, v in lrs.items()})
         n_rows = int(self.params["means"].shape[0])
@@ -211,7 +214,8 @@ class DeviceAdam:
             return
         args += [np.float32(b1), np.float32(b2), np.float32(1.0 - b1), np.float32(1.0 - b2), np.float32(self.eps),
                  np.float32(inv_bc1), np.float32(inv_sqrt_bc2)]
-        vis = [self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None)]
+        vis = [self.rt.dummy_buffer() if visible is None else self._buf(visible), np.int32(visible is not None),
+               self.rt.buf(skip), np.int32(skip is not None)]
         if rows is None:
             self.rt.launch_1d(self.rt.kernel("adam.cl", "adam_step", options), runs, WORK_GROUP, *args, *vis)
         else:

@@ -78,6 +78,7 @@ class PairCount:
         self._host = host               # [1] int32, filled by event
         self._event = event
         self._policy = policy
+        self._device = None             # (buffer, int32 index) of M on the device, where it lies there
         if self._m is not None and policy is not None:
             policy.observe(self._m)
 
@@ -87,7 +88,14 @@ class PairCount:
         host = np.empty(1, np.int32)
         event = cl.enqueue_copy(rt.queue, host, offsets.base_data, src_offset=int(offsets.offset) + 4 * int(n),
                                 is_blocking=False)
-        return cls(capacity, host=host, event=event, policy=policy)
+        count = cls(capacity, host=host, event=event, policy=policy)
+        count._device = (offsets.base_data, int(offsets.offset) // 4 + int(n))
+        return count
+
+    def device_at(self):
+        """(buffer, int32 index) where M lies on the device (ops.util.step_gate tests it there), or
+        None where it was known on the host when the buffers were sized."""
+        return self._device
 
     @property
     def pending(self) -> bool:

@@ -383,11 +383,12 @@ def rasterize_projected_bwd(rt, proj, binned, raster: RasterOut, v_out, v_alpha,
 
 
 def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, grad_accum, count,
-                             max_radius, rows=None) -> None:
+                             max_radius, rows=None, skip=None) -> None:
     """In place on the device, for Gaussians with radius > 0: grad_accum [N] += |v_means2d * (W/2, H/2)|,
     count [N] (int32) += 1, max_radius [N] = max(max_radius, radius).
     rows: None, or int32 [L] (ops.select.LiveRows.rows): v_means2d [L, 2] and radius [L] are then
-    a step's on selected rows, entry i belonging to Gaussian rows[i]."""
+    a step's on selected rows, entry i belonging to Gaussian rows[i].
+    skip: None, or the step gate int32 [1] (ops.util.step_gate): nothing changes where it is not 0."""
     L = int(radius.shape[0])
     N = int(grad_accum.shape[0])
     assert v_means2d.shape == (L, 2) and count.shape == (N,) and max_radius.shape == (N,)
@@ -397,4 +398,5 @@ def accumulate_densify_stats(rt, v_means2d, radius, width: int, height: int, gra
         return
     rt.launch_1d(rt.kernel("densify_stats.cl", "accumulate_densify_stats"), L, 64, v_means2d.data, radius.data,
                  np.float32(0.5 * width), np.float32(0.5 * height), np.int32(L), rt.buf(rows),
-                 np.int32(rows is not None), grad_accum.data, count.data, max_radius.data)
+                 np.int32(rows is not None), grad_accum.data, count.data, max_radius.data, rt.buf(skip),
+                 np.int32(skip is not None))

@@ -12,6 +12,14 @@ NONFINITE_RUN = 64    # elements per work-item of any_nonfinite_f32 (-DNF_RUN of
 NONFINITE_ARRAYS = 8  # arrays per launch of any_nonfinite_f32 (its x0 .. x7)
 READBACK_ALIGN = 16   # bytes: each array's region in the read-back buffer starts at a multiple of this
 
+# The step gate's bits (cl/util.cl step_gate): why a step's update was left out on the device
+GATE_NONFINITE = 1    # its gradients or loss sums hold a NaN or an Inf
+GATE_ROWS = 2         # its live rows overflowed their buffer (ops/select.py)
+GATE_PAIRS = 4        # its binning's pairs overflowed theirs (ops/binning.py)
+GATE_SUPERVISED = 8   # its target supervises no pixel (a count only the device knew)
+GATE_BITS = {"GATE_NONFINITE": GATE_NONFINITE, "GATE_ROWS": GATE_ROWS, "GATE_PAIRS": GATE_PAIRS,
+             "GATE_SUPERVISED": GATE_SUPERVISED}
+
 
 def f32_literal(x: float) -> str:
     """An OpenCL float literal that rounds to the same float32 as numpy does (for -D build options)."""
@@ -59,21 +67,58 @@ def read_back(rt, arrays: Mapping[str, object]) -> Dict[str, np.ndarray]:
     """Host copies of several small device arrays with one blocking read: each is copied (on the
     device, in queue order) into one staging buffer, which is read once.  {name: numpy array of
     the same dtype and shape}; empty arrays come back empty."""
-    layout, total = [], 0
-    for name, a in arrays.items():
-        layout.append((name, a, total))
-        total += -(-int(a.nbytes) // READBACK_ALIGN) * READBACK_ALIGN
-    out: Dict[str, np.ndarray] = {}
-    if total == 0:
-        return {name: np.empty(a.shape, a.dtype) for name, a in arrays.items()}
-    staging = cla.empty(rt.queue, (total,), np.uint8)
-    for name, a, off in layout:
-        if a.nbytes:
-            if not a.flags.c_contiguous:
+    return PendingRead(rt, arrays).result()
+
+
+class PendingRead:
+    """read_back without the wait: the arrays' copies into one staging buffer and its copy to the
+    host are enqueued at once (in queue order, so they hold the values the work enqueued before
+    gave them), and result() waits for that copy only, typically long done by then."""
+
+    def __init__(self, rt, arrays: Mapping[str, object]):
+        self._layout, total = [], 0
+        for name, a in arrays.items():
+            self._layout.append((name, a.dtype, tuple(a.shape), int(a.nbytes), total))
+            total += -(-int(a.nbytes) // READBACK_ALIGN) * READBACK_ALIGN
+        self._host = np.empty(total, np.uint8)
+        self._event = None
+        if total == 0:
+            return
+        staging = cla.empty(rt.queue, (total,), np.uint8)
+        for name, a in arrays.items():
+            if a.nbytes and not a.flags.c_contiguous:
                 raise ValueError(f"read_back: {name!r} is not C-contiguous")
-            cl.enqueue_copy(rt.queue, staging.data, a.base_data, byte_count=int(a.nbytes), dst_offset=off,
-                            src_offset=int(a.offset))
-    host = staging.get()   # the blocking read
-    for name, a, off in layout:
-        out[name] = host[off:off + int(a.nbytes)].view(a.dtype).reshape(a.shape).copy()
-    return out
+        for (name, _, _, nbytes, off), a in zip(self._layout, arrays.values()):
+            if nbytes:
+                cl.enqueue_copy(rt.queue, staging.data, a.base_data, byte_count=nbytes, dst_offset=off,
+                                src_offset=int(a.offset))
+        self._event = cl.enqueue_copy(rt.queue, self._host, staging.data, is_blocking=False)
+
+    @property
+    def done(self) -> bool:
+        """True when result() would not wait."""
+        return self._event is None or self._event.command_execution_status == cl.command_execution_status.COMPLETE
+
+    def result(self) -> Dict[str, np.ndarray]:
+        """{name: numpy array of the same dtype and shape} (waits for the copy where it is pending)."""
+        if self._event is not None:
+            self._event.wait()
+            self._event = None
+        return {name: self._host[off:off + nbytes].view(dtype).reshape(shape).copy()
+                for name, dtype, shape, nbytes, off in self._layout}
+
+
+def step_gate(rt, skip, nonfinite_grads, nonfinite_loss, rows=None, pairs=None, supervised=None) -> None:
+    """Enqueue skip [1] int32 |= the GATE_* bits of a step (cl/util.cl step_gate; reference:
+    reference/util.py step_gate_ref): nonfinite_grads, nonfinite_loss: int32 [1] flags
+    (nonfinite_flag of the gradients and of the loss sums); rows, pairs:
+    ops.binning.PairCount (count and capacity) of the step's live rows and binning, or None;
+    supervised: an int32 [1] device count of supervised pixels, or None where the host knew it."""
+    def count_arg(pc):
+        at = None if pc is None else pc.device_at()
+        if at is None:            # known on the host when the buffer was sized: nothing to test
+            return [rt.dummy_buffer(), np.int32(0), np.int32(-1)]
+        return [at[0], np.int32(at[1]), np.int32(pc.capacity)]
+    k = rt.kernel("util.cl", "step_gate", [f"-D{name}={bit}" for name, bit in GATE_BITS.items()])
+    rt.launch(k, (1,), (1,), nonfinite_grads.data, nonfinite_loss.data, *count_arg(rows), *count_arg(pairs), rt.buf(supervised),
+              np.int32(supervised is not None), skip.data)

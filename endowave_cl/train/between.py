@@ -592,6 +592,14 @@ class BetweenSampler:
             self._pushed[index] = consistent_flows([pair, *self.extra(pair)])
         return self._pushed[index]
 
+    def kept_motion(self) -> Dict[int, Tuple[int, np.ndarray, np.ndarray]]:
+        """The model motion kept per pair (_pair_motion), as a dict the trainer can put back with
+        keep_motion: a step done again renders what a skipped one had rendered and kept."""
+        return dict(self._motion)
+
+    def keep_motion(self, kept: Dict[int, Tuple[int, np.ndarray, np.ndarray]]) -> None:
+        self._motion = dict(kept)
+
     def _pair_motion(self, index: int, model_flow, step: int) -> Tuple[np.ndarray, np.ndarray]:
         """(G0, G1) [H, W, 2] each: the motion the model renders at pair index's first frame to its
         second and back, rendered again once older than motion_refresh steps."""

@@ -13,9 +13,18 @@ random time between two training frames, against the frame their flow predicts t
 (train/between.py).
 
 Parameters, Adam moments, the rendered images and every frame's targets stay on the device; per
-step the host reads one small buffer of scalars (the loss sums and the gradients' NaN / Inf flag;
-select's live-row count and the binning's pair count, copied without blocking, are checked after
-it), and the parameters only when densifying, checkpointing or exporting.
+step the host reads one small buffer of scalars (the loss sums, the gradients' NaN / Inf flag and
+the step gate), and the parameters only when densifying, checkpointing or exporting.
+
+In the loop (``Trainer.train``) that read does not block: a step is enqueued whole, gated on the
+device (ops/util.py step_gate: Adam and the densification statistics leave everything as it was
+where its gradients are not finite or its live rows or pairs overflowed their buffers), and its
+scalars are read once the next step is enqueued.  A step found skipped there is done again from
+the same draws, waiting for its outcome, and the step enqueued behind it (skipped with it: the gate
+is sticky) is drawn again, so the updates, and their bits, are those of a loop that waits at every
+step (``ENDOWAVE_BLOCKING_STEPS=1`` runs that loop).  Steps after which the host needs the outcome
+(a log line, density control, an opacity reset, an evaluation, a checkpoint, the time budget's
+first plan, the last step) wait for it.
 """
 from __future__ import annotations
 
@@ -28,13 +37,14 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 import pyopencl.array as cla
 
+from .. import env
 from ..data.flow import estimation_size, flow_for_scene
 from ..evaluation import evaluate_run
 from ..gaussians import Gaussians, covariance_4d, download, upload
 from ..host_memory import keep_freed_memory
 from ..ops.adam import DeviceAdam, anneal_factor, opacity_reset, position_lr
 from ..ops.select import select_enabled
-from ..ops.util import nonfinite_flag, read_back
+from ..ops.util import GATE_PAIRS, GATE_ROWS, GATE_SUPERVISED, PendingRead, nonfinite_flag, read_back, step_gate
 from ..progress import hold_rate, progress as progress_bar, restart_rate
 from ..render import DEPTH, FLOW, accumulate_stats, render, render_backward
 from . import curves
@@ -49,6 +59,40 @@ from .guard import TrainingDiverged  # noqa: F401  (a non-finite step or a diver
 from .init import init_gaussians
 from .motion import temporal_coverage
 from .run_folder import RunSession
+
+
+# $ENDOWAVE_BLOCKING_STEPS=1: the loop waits for every step's outcome before the next (the
+# reference for the deferred read, with the same results; benchmarks compare the two)
+ENV_BLOCKING_STEPS = "ENDOWAVE_BLOCKING_STEPS"
+
+
+def deferred_steps() -> bool:
+    """Whether Trainer.train reads each step's outcome after the next step is enqueued."""
+    return not env.flag(ENV_BLOCKING_STEPS)
+
+
+@dataclass
+class HostState:
+    """What the host holds that a step changes, taken before it: a skipped step is done again
+    from here (Trainer._rewind)."""
+    rng: dict                          # the generator's bit state (the step's draws)
+    step: int
+    adam_steps: int                    # DeviceAdam.step_count (the bias corrections)
+    motion: Optional[dict]             # the in-between sampler's kept model motion
+
+
+@dataclass
+class PendingStep:
+    """A step enqueued on the device, its outcome not read yet (Trainer._step_enqueued)."""
+    read: PendingRead                  # the loss sums, the gradients' NaN / Inf flag, the gate
+    finish: Callable                   # host sums -> (total, parts): device_losses.PendingLosses
+    out: "object"                      # its render (the live-row and pair counts)
+    what: str
+    step: int                          # the step count once it is applied
+
+
+class StepSkipped(Exception):
+    """A deferred step's gate came back set for a reason that a step done again clears."""
 
 
 @dataclass
@@ -105,6 +149,8 @@ class Trainer:
     def _init_model(self, scene, cfg, rt, resume):
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
+        self._defer = False                       # train() reads each step's outcome one step late
+        self._skip = cla.zeros(rt.queue, (1,), np.int32)   # the step gate (ops/util.py step_gate)
         self.history: List[Dict[str, float]] = []
 
         self.flows = self._load_flows()
@@ -284,6 +330,8 @@ class Trainer:
         nothing changed, and None returned (as the sampler's draw returns None for host targets)."""
         if out is None:
             out = render(self.rt, self.params, camera, t, t_next, select=self.select_live, check=False)  # forward
+        if self._defer:
+            return self._step_enqueued(out, dev, what)
         while True:
             pending = self.losses_enqueue(out, dev)                                      # losses
             grads = render_backward(self.rt, self.params, out, pending.v_features,       # adjoints
@@ -303,6 +351,71 @@ class Trainer:
                        rows=None if out.live is None else out.live.rows)
         self.step += 1
         return parts
+
+    def _step_enqueued(self, out, dev, what: str) -> PendingStep:
+        """_step's losses, adjoints, statistics and Adam enqueued behind a gate instead of a wait
+        (module docstring): the step's read-back is enqueued and returned, not waited for."""
+        pending = self.losses_enqueue(out, dev)                                         # losses
+        grads = render_backward(self.rt, self.params, out, pending.v_features,          # adjoints
+                                deterministic=True if self.cfg.deterministic else None, sh_factors=True)
+        grads_bad = nonfinite_flag(self.rt, grads.values())
+        loss_bad = nonfinite_flag(self.rt, [a for a in pending.sums.values() if a.dtype == np.float32])
+        supervised = getattr(getattr(dev, "dev", dev), "supervised", None)
+        step_gate(self.rt, self._skip, grads_bad, loss_bad, rows=None if out.live is None else out.live.count,
+                  pairs=out.binned.pairs, supervised=supervised)                     # the gate
+        accumulate_stats(self.rt, out, self.stats, skip=self._skip)
+        self.adam.step({name[2:]: v for name, v in grads.items()}, self.group_lrs(self.step),  # Adam
+                       visible=out.proj.radius if self.cfg.adam_skip_culled else None,
+                       rows=None if out.live is None else out.live.rows, skip=self._skip)
+        self.step += 1
+        read = PendingRead(self.rt, {**pending.sums, "nonfinite": grads_bad, "skip": self._skip})
+        return PendingStep(read, pending.finish, out, what, self.step)
+
+    def _settle(self, p: PendingStep) -> Dict[str, float]:
+        """A deferred step's loss parts, once its read-back is in (raises StepSkipped where its
+        gate says it was not applied for a reason that doing it again clears, TrainingDiverged where
+        it was not finite)."""
+        host = p.read.result()
+        for count in (p.out.binned.pairs, None if p.out.live is None else p.out.live.count):
+            if count is not None:
+                count.value()          # copied before the read-back: the capacities learn the count
+        if int(host["skip"][0]) & (GATE_ROWS | GATE_PAIRS | GATE_SUPERVISED):
+            raise StepSkipped(p.what)
+        total, parts = p.finish(host)
+        self._check_finite(total, bool(host["nonfinite"][0]), p.what, step=p.step - 1)
+        return parts
+
+    def _host_state(self) -> HostState:
+        sampler = getattr(self, "_between", None)
+        return HostState(self.rng.bit_generator.state, self.step, self.adam.step_count,
+                         None if not sampler else sampler.kept_motion())
+
+    def _rewind(self, state: HostState) -> None:
+        """Back to the host state before a skipped step, the device's gate cleared: the steps
+        skipped on the device changed nothing there."""
+        self.rng.bit_generator.state = state.rng
+        self.step, self.adam.step_count = state.step, state.adam_steps
+        if state.motion is not None:
+            self._between.keep_motion(state.motion)
+        self._skip.fill(0)
+
+    def _redo(self, order: List[int]):
+        """schedule_step, waiting for the step's outcome (a skipped step done again)."""
+        defer, self._defer = self._defer, False
+        try:
+            return self.schedule_step(order)
+        finally:
+            self._defer = defer
+
+    def _wait_after(self, s: int, budget) -> bool:
+        """Whether the loop needs step s's outcome before it enqueues the next step."""
+        c = self.cfg
+        return bool(s % c.log_every == 0 or s >= c.iterations
+                    or (c.densify_from <= s <= c.densify_until and s % c.densify_every == 0)
+                    or (s > 0 and s % c.opacity_reset_every == 0 and s < c.densify_until)
+                    or (c.eval_every and s % c.eval_every == 0)
+                    or (c.checkpoint_every and s % c.checkpoint_every == 0)
+                    or (budget is not None and budget.planned is None))
 
     def losses_enqueue(self, out, dev):
         """The step's losses against dev (device_losses.DeviceTargets; a FrameTargets is accepted
@@ -326,13 +439,13 @@ class Trainer:
             self._wcfg = self.cfg.wavelet_config()
         return self._wcfg
 
-    def _check_finite(self, total: float, grads_nonfinite: bool, what: str):
+    def _check_finite(self, total: float, grads_nonfinite: bool, what: str, step: Optional[int] = None):
         bad = [] if math.isfinite(total) else ["loss"]
         if grads_nonfinite:
             bad.append("gradients")
         if bad:
             raise self._run.fail(self, TrainingDiverged(
-                f"step {self.step} ({what}): non-finite {', '.join(bad)}; the step was not applied. "
+                f"step {self.step if step is None else step} ({what}): non-finite {', '.join(bad)}; the step was not applied. "
                 f"Try lower learning rates"))
 
     # ------------------------------------------------------------------ density control
@@ -439,19 +552,63 @@ class Trainer:
         hold_rate(bar)
         budget = self._start_budget()
         tb = TensorBoard(self.run_dir, self.step)   # scalars when tensorboard is installed; the CSV always
-        step_times: List[float] = []
+        step_times: List[float] = []        # wall time per step of the loop (a deferred step's
+                                             # enqueue and the wait for the step before it)
         ema = self._run.ema                  # restored on resume
+        pending = None                       # (kind, PendingStep, HostState): enqueued, not read yet
+        defer = deferred_steps()
+
+        def running_mean(parts):
+            # the log and the divergence guard follow the training frames only
+            return parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
+
+        def settle_pending() -> bool:
+            """Read the step enqueued last and do its bookkeeping (never a log step: _wait_after);
+            a step skipped on the device is done again from its state, waiting for it.  True
+            where it was: the step enqueued behind it, skipped with it, is to be drawn again."""
+            nonlocal ema, warm_build, pending
+            kind, step, state = pending
+            pending = None
+            try:
+                parts, s, redone = self._settle(step), step.step, False
+            except StepSkipped:
+                self._rewind(state)
+                (kind, parts), s, redone = self._redo(order), self.step, True
+            if kind == "plain":
+                ema = running_mean(parts)
+            self._run.after_step(self, s, ema)
+            bar.update(1)
+            if s == eta_from:
+                restart_rate(bar)
+                warm_build = getattr(self.rt, "build_seconds", 0.0)
+            return redone
+
         while self.step < c.iterations:
+            out_of_time = budget is not None and budget.out_of_time()
+            if pending is not None and (out_of_time or self._run.stop.requested is not None):
+                settle_pending()
             self._run.poll(self)             # SIGINT / SIGTERM: save at this step boundary and stop
-            if budget is not None and budget.out_of_time():
+            if out_of_time:
                 bar.write(f"time budget of {c.minutes:g} min reached at step {self.step}")
                 break
             t_step = time.perf_counter()
-            kind, parts = self.schedule_step(order)
-            if kind == "plain":
-                # the log and the divergence guard follow the training frames only
-                ema = parts if ema is None else {key: 0.9 * ema.get(key, v) + 0.1 * v for key, v in parts.items()}
+            # a step whose outcome the loop needs at once waits for it, the step before it read first
+            # (a blocking step is not gated: it must not follow a skipped one)
+            self._defer = defer and not self._wait_after(self.step + 1, budget)
+            if pending is not None and not self._defer:
+                settle_pending()
+            state = self._host_state() if self._defer else None
+            kind, result = self.schedule_step(order)
+            if pending is not None and settle_pending():   # the step before, read now this one is enqueued
+                step_times.append(time.perf_counter() - t_step)
+                continue                     # this step was skipped behind it: it is drawn again
+            if self._defer:
+                pending = (kind, result, state)
+                step_times.append(time.perf_counter() - t_step)
+                continue
             step_times.append(time.perf_counter() - t_step)
+            if kind == "plain":
+                ema = running_mean(result)
             s = self.step
             if c.densify_from <= s <= c.densify_until and s % c.densify_every == 0:
                 self.densify()
@@ -478,6 +635,9 @@ class Trainer:
             if self.step == eta_from:
                 restart_rate(bar)             # the time left from here on
                 warm_build = getattr(self.rt, "build_seconds", 0.0)
+        if pending is not None:               # a plan cut short under a step enqueued last
+            settle_pending()
+        self._defer = False
         bar.close()
         seconds, build_seconds = self._split_build_time(time.perf_counter() - t_start, step_times,
                                                         loop_build0, warm_build)

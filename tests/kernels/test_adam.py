@@ -310,3 +310,37 @@ def test_opacity_reset_matches_reference(rt, n):
         assert np.isnan(want[1]) and want[2] == -np.inf
         assert (x[3:] > cap).any() and (want[3:] <= np.float32(cap)).all()
         np.testing.assert_array_equal(want[3:][x[3:] <= cap], x[3:][x[3:] <= cap])   # below: untouched
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("compact", [False, True])
+def test_adam_gated_step_changes_nothing(rt, compact):
+    """skip set (the step gate): neither parameters nor moments move, on adam_step and on
+    adam_step_rows; skip 0: the same bits as a step without the gate."""
+    g = Gaussians.random(small(19, 5), seed=4, degree=1, nt=1)
+    rng = np.random.default_rng(5)
+    grads = _grads(g, rng)
+    rows = np.array([0, 3, 4, 9, 17, -1][: 6 if len(g) > 17 else 3], np.int32)
+    if compact:
+        rows = rows[rows < len(g)]
+        grads = {n: a[np.maximum(rows, 0)] for n, a in grads.items()}
+    results = []
+    for skip in (None, 0, 1):
+        params = upload(rt, g)
+        opt = DeviceAdam(rt, params, LRS)
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, rows=_to_dev_i(rt, rows) if compact else None)
+        opt.step({n: _to_dev(rt, a) for n, a in grads.items()}, rows=_to_dev_i(rt, rows) if compact else None,
+                 skip=None if skip is None else _to_dev_i(rt, np.array([skip])))
+        st = opt.state_dict()
+        results.append(({n: params[n].get() for n in PARAM_NAMES}, st))
+    (p_none, s_none), (p_zero, s_zero), (p_one, s_one) = results
+    once = DeviceAdam(rt, upload(rt, g), LRS)
+    p_once = once.params
+    once.step({n: _to_dev(rt, a) for n, a in grads.items()}, rows=_to_dev_i(rt, rows) if compact else None)
+    for n in PARAM_NAMES:
+        np.testing.assert_array_equal(p_zero[n], p_none[n], err_msg=n)
+        np.testing.assert_array_equal(s_zero["exp_avg"][n], s_none["exp_avg"][n], err_msg=n)
+        np.testing.assert_array_equal(p_one[n], p_once[n].get(), err_msg=n)     # the second step left out
+        np.testing.assert_array_equal(s_one["exp_avg"][n], once.state_dict()["exp_avg"][n], err_msg=n)
+        np.testing.assert_array_equal(s_one["exp_avg_sq"][n], once.state_dict()["exp_avg_sq"][n], err_msg=n)
+        assert not np.array_equal(p_none[n], p_once[n].get()) or not grads[n].any(), n

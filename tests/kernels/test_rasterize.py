@@ -486,3 +486,12 @@ def test_densify_stats(rt, n):
     np.testing.assert_allclose(d_ga.get(), ga, rtol=1e-6)
     np.testing.assert_array_equal(d_cnt.get(), cnt)
     np.testing.assert_array_equal(d_mr.get(), mr)
+    # gated (the step gate, ops/util.py step_gate): set, nothing changes; 0, the same as ungated
+    before = d_ga.get(), d_cnt.get(), d_mr.get()
+    for skip in (1, 0):
+        accumulate_densify_stats(rt, cla.to_device(q, v), cla.to_device(q, radius), w, h, d_ga, d_cnt, d_mr,
+                                 skip=cla.to_device(q, np.array([skip], np.int32)))
+    ga, cnt, mr = accumulate_densify_stats_ref(v, radius, w, h, *before)
+    np.testing.assert_allclose(d_ga.get(), ga, rtol=1e-6)
+    np.testing.assert_array_equal(d_cnt.get(), cnt)
+    np.testing.assert_array_equal(d_mr.get(), mr)

@@ -1,4 +1,4 @@
-"""Device utilities: the non-finite guard."""
+"""Device utilities: the non-finite guard, the step gate, the deferred read-back."""
 import numpy as np
 import pytest
 
@@ -72,3 +72,76 @@ def test_read_back_several_arrays_in_one_read(rt):
     np.testing.assert_array_equal(got["view"], np.arange(4, 10, dtype=np.float32))
     assert got["flag"].tolist() == [1]
     assert read_back(rt, {"e": dev["e"]})["e"].shape == (0, 2)
+
+
+# ------------------------------------------------------------------------------ the step gate
+def _gate(rt, skip0, grads_bad, loss_bad, rows=None, pairs=None, supervised=None):
+    """step_gate on the device with counts (value, capacity) placed at an offset in a longer array,
+    as the binning's offsets [N + 1] hold M at [N]; returns the new gate."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.binning import PairCount
+    from endowave_cl.ops.util import step_gate
+    keep = []
+
+    def dev(x):
+        a = cla.to_device(rt.queue, np.asarray(x, np.int32))
+        keep.append(a)
+        return a
+
+    def count(vc):
+        if vc is None:
+            return None
+        value, cap = vc
+        offsets = dev([7, 3, 5, value])           # M at [3], as offsets [N + 1] with N = 3
+        return PairCount.enqueue_read(rt, offsets, 3, cap, None)
+    skip = dev([skip0])
+    step_gate(rt, skip, dev([grads_bad]), dev([loss_bad]), rows=count(rows), pairs=count(pairs),
+              supervised=None if supervised is None else dev([supervised]))
+    return int(skip.get()[0])
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("case", [
+    dict(), dict(grads_bad=1), dict(loss_bad=1), dict(rows=(10, 10)), dict(rows=(11, 10)),
+    dict(pairs=(100, 99)), dict(pairs=(0, 1024)), dict(supervised=0), dict(supervised=5),
+    dict(skip0=4), dict(skip0=2, rows=(11, 10), pairs=(2000, 1024), grads_bad=1, supervised=0)])
+def test_step_gate_matches_reference(rt, case):
+    from endowave_cl.reference.util import step_gate_ref
+    c = dict(dict(skip0=0, grads_bad=0, loss_bad=0), **case)
+    rows, pairs = c.get("rows"), c.get("pairs")
+    want = step_gate_ref(c["skip0"], c["grads_bad"], c["loss_bad"],
+                         None if rows is None else rows[0], -1 if rows is None else rows[1],
+                         None if pairs is None else pairs[0], -1 if pairs is None else pairs[1],
+                         c.get("supervised"))
+    assert _gate(rt, c["skip0"], c["grads_bad"], c["loss_bad"], rows, pairs, c.get("supervised")) == want
+
+
+def test_step_gate_leaves_host_known_counts_untested(rt):
+    """A count the host knew when it sized the buffer (PairCount(m, m)) is not tested on the device."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.binning import PairCount
+    from endowave_cl.ops.util import step_gate
+    z = cla.zeros(rt.queue, (1,), np.int32)
+    skip = cla.zeros(rt.queue, (1,), np.int32)
+    step_gate(rt, skip, z, z, rows=PairCount(5, 5), pairs=PairCount(0, 0))
+    assert int(skip.get()[0]) == 0
+
+
+def test_pending_read_matches_read_back(rt):
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import PendingRead, read_back
+    rng = np.random.default_rng(1)
+    arrays = {"a": cla.to_device(rt.queue, rng.standard_normal((3, 5)).astype(np.float32)),
+              "b": cla.to_device(rt.queue, np.arange(7, dtype=np.int32)),
+              "empty": cla.zeros(rt.queue, (0,), np.float32)}
+    p = PendingRead(rt, arrays)
+    arrays["b"].fill(-1)              # enqueued after the read: not in it
+    got, now = p.result(), read_back(rt, arrays)
+    assert p.done
+    np.testing.assert_array_equal(got["a"], arrays["a"].get())
+    np.testing.assert_array_equal(got["b"], np.arange(7))
+    np.testing.assert_array_equal(now["b"], np.full(7, -1))
+    assert got["empty"].shape == (0,)
