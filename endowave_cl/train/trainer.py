@@ -150,6 +150,7 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self._defer = False                       # train() reads each step's outcome one step late
+        self.redone_steps = 0                     # steps train() found skipped on the device and did again
         self._skip = cla.zeros(rt.queue, (1,), np.int32)   # the step gate (ops/util.py step_gate)
         self.history: List[Dict[str, float]] = []
 
@@ -574,6 +575,7 @@ class Trainer:
             except StepSkipped:
                 self._rewind(state)
                 (kind, parts), s, redone = self._redo(order), self.step, True
+                self.redone_steps += 1
             if kind == "plain":
                 ema = running_mean(parts)
             self._run.after_step(self, s, ema)
@@ -644,6 +646,7 @@ class Trainer:
         self.save()
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds,
+                        "redone_steps": self.redone_steps,
                         "build_seconds": build_seconds})
         tb.close()
         self._write_curves(None, png=True)
