@@ -604,7 +604,7 @@ class Trainer:
             if pending is not None and settle_pending():   # the step before, read now this one is enqueued
                 step_times.append(time.perf_counter() - t_step)
                 continue                     # this step was skipped behind it: it is drawn again
-            if self._defer:
+            if isinstance(result, PendingStep):   # a deferred step (a step done at once returns its parts)
                 pending = (kind, result, state)
                 step_times.append(time.perf_counter() - t_step)
                 continue
