@@ -17,7 +17,8 @@ report (``--test``: the usual split, the test frames scored; use a tag of its ow
 
 Scenes (--scenes, comma-separated): pulling (the EndoNeRF pulling frames at --downscale 2),
 traction and pushing (shared/data/endonerf_clips, 320x256), synth (a 320x256 synthetic scene of 48
-frames with exact depth and flow, made once under OUT).  Runs go to OUT/TAG/SCENE_sSEED and are
+frames with exact depth and flow, made once under OUT); pulling640 (the pulling frames at their full
+640x512: only when --scenes names it, e.g. the report's ``--test --minutes 60 --scenes pulling640``).  Runs go to OUT/TAG/SCENE_sSEED and are
 kept: a run with an eval.json is not trained again.  Prints per run, per scene (mean over seeds)
 and the per-frame margin over the teacher against the motion between the frame's neighbours, and
 writes OUT/TAG/summary.json.
@@ -38,6 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 # name -> (path under shared/, --downscale)
 SCENES = {
     "pulling": ("data/endonerf/pulling_soft_tissues", 2.0),
+    "pulling640": ("data/endonerf/pulling_soft_tissues", 1.0),   # full size; only when named
     "traction": ("data/endonerf_clips/traction", 1.0),
     "pushing": ("data/endonerf_clips/pushing", 1.0),
     "synth": (None, 1.0),

@@ -178,6 +178,9 @@ class DensifySettings:
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
     split_scale_divisor: float = 1.6    # children's spatial scales = parent's / 1.6
+    cap_turnover: float = 0.0           # at the cap, up to this fraction of it may be replaced per
+                                        # densification: the least opaque non-candidates make room
+                                        # for the candidates with the largest gradient (densify.py)
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
@@ -538,7 +541,7 @@ RANGES = {
     "lr_phase": _NON_NEGATIVE, "lr_anneal_final": _POSITIVE,
     "densify_from": _NON_NEGATIVE, "densify_every": _AT_LEAST_1, "densify_until": _NON_NEGATIVE,
     "densify_grad_threshold": _NON_NEGATIVE, "percent_dense": _NON_NEGATIVE, "split_children": _AT_LEAST_1,
-    "split_scale_divisor": _POSITIVE, "prune_opacity": (0, 1, True, False), "prune_screen_size": _POSITIVE,
+    "split_scale_divisor": _POSITIVE, "cap_turnover": _UNIT, "prune_opacity": (0, 1, True, False), "prune_screen_size": _POSITIVE,
     "prune_world_size": _POSITIVE, "opacity_reset_every": _AT_LEAST_1, "opacity_reset_value": (0, 1, False, False),
     "lambda_rgb": _NON_NEGATIVE, "lambda_dssim": _UNIT, "lambda_depth": _NON_NEGATIVE,
     "lambda_flow": _NON_NEGATIVE, "flow_huber_delta": _POSITIVE, "lambda_wavelet": _NON_NEGATIVE,

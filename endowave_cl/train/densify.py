@@ -25,7 +25,10 @@ Rules (3DGS defaults from TrainConfig):
   k-fold, composites to the original's (``share_opacity``; Rota Bulo et al. 2024), so density
   control does not brighten what was already fitted.
 - When the scene already holds max_gaussians, nothing is added; when the candidates would exceed
-  it, those with the largest gradient are taken first.
+  it, those with the largest gradient are taken first.  With cap_turnover > 0, up to
+  cap_turnover x max_gaussians of the least opaque Gaussians that are not candidates are removed to
+  make room for the candidates that did not fit (as many as those need, and no more): at the cap,
+  density control keeps moving Gaussians from where they add little to where the gradient is.
 - Then PRUNE: sigmoid(opacity) < prune_opacity, or a covariance that overflows float64 (log scales
   run away); and, when ``prune_big`` (off by default; 3DGS
   turns it on once step > opacity_reset_every, pass prune_big=step > cfg.opacity_reset_every),
@@ -149,10 +152,23 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     small = max_scale <= cfg.percent_dense * extent
     cost = np.where(small, 1, children - 1)  # rows added: a clone adds 1, a split children - 1
     chosen = np.zeros(N, bool)
-    if candidate.any() and budget > 0:
+    victim = np.zeros(N, bool)    # [N] removed to make room for candidates (cap_turnover)
+    if candidate.any():
         order = np.flatnonzero(candidate)
         order = order[np.argsort(-mean_grad[order], kind="stable")]  # largest gradient first
-        fits = np.cumsum(cost[order]) <= budget
+        spent = np.cumsum(cost[order])                               # [C]
+        # At the cap, up to cap_turnover x cap of the least opaque non-candidates give their rows to
+        # the candidates that did not fit, largest gradient first.
+        turnover = int(getattr(cfg, "cap_turnover", 0.0) * cfg.max_gaussians) if cfg.max_gaussians > 0 else 0
+        if turnover > 0 and spent[-1] > budget:
+            pool = np.flatnonzero(~candidate)
+            pool = pool[np.argsort(sigmoid(g.opacity[pool]), kind="stable")][:turnover]   # [V]
+            extra = int(min(pool.size, spent[-1] - budget))
+            fits = spent <= budget + extra
+            needed = int(max(0, (spent[fits][-1] if fits.any() else 0) - budget))
+            victim[pool[:needed]] = True
+            budget += needed
+        fits = spent <= budget
         chosen[order[fits]] = True
     clone = chosen & small        # [N]
     split = chosen & ~small       # [N]
@@ -182,6 +198,7 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     # -- prune ------------------------------------------------------------------------------------
     prune = (sigmoid(new["opacity"]) < cfg.prune_opacity) | ~np.concatenate(
         [sane[keep_rows], np.ones(clone_rows.size + parents.size, bool)])
+    prune |= np.concatenate([victim[keep_rows], np.zeros(clone_rows.size + parents.size, bool)])
     if prune_big:
         new_max_scale = np.concatenate([max_scale[keep_rows], max_scale[clone_rows],
                                         spatial_size(covariance_4d(Gaussians(**child))) if parents.size
@@ -192,7 +209,7 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
     out = Gaussians(**{n: a[alive] for n, a in new.items()})
     if stats is not None:
         stats.update(cloned=int(clone_rows.size), split=int(split_rows.size), pruned=int(prune.sum()),
-                     is_new=is_new[alive])
+                     replaced=int(victim.sum()), is_new=is_new[alive])
     return out, source[alive]
 
 

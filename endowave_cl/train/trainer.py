@@ -151,6 +151,7 @@ class Trainer:
         self.step = 0
         self._defer = False                       # train() reads each step's outcome one step late
         self.redone_steps = 0                     # steps train() found skipped on the device and did again
+        self.density_counts = {"cloned": 0, "split": 0, "pruned": 0, "replaced": 0}   # over the run
         self._skip = cla.zeros(rt.queue, (1,), np.int32)   # the step gate (ops/util.py step_gate)
         self.history: List[Dict[str, float]] = []
 
@@ -458,6 +459,8 @@ class Trainer:
             download(self.params), self.stats["grad_accum"].get(), self.stats["count"].get(),
             self.stats["max_radius"].get(), self.cfg, self.extent,
             prune_big=self.step > self.cfg.opacity_reset_every, stats=info)
+        for k in self.density_counts:
+            self.density_counts[k] += int(info.get(k, 0))
         order = temporal_row_order(new_g)   # the rows alive at one time together (a permutation)
         self.set_gaussians(new_g.take(order),
                            moment_source_index(source[order], info["is_new"][order]))  # new rows: zero moments
@@ -646,7 +649,7 @@ class Trainer:
         self.save()
         metrics = self.evaluate()
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds,
-                        "redone_steps": self.redone_steps,
+                        "redone_steps": self.redone_steps, "density_control": dict(self.density_counts),
                         "build_seconds": build_seconds})
         tb.close()
         self._write_curves(None, png=True)

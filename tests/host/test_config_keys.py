@@ -462,6 +462,18 @@ def _split_scale_divisor():
     assert sizes[0] == pytest.approx(0.05 / 1.6, rel=1e-3) and sizes[1] == pytest.approx(0.05 / 3.0, rel=1e-3)
 
 
+def _cap_turnover():
+    g = _pair()
+    g.opacity[:2] = logit(0.01)                    # two faint Gaussians, not candidates below
+    grad = np.array([0, 0, 1e-3, 1e-3])
+    out = [densify_and_prune(g, grad, np.ones(4), np.ones(4),
+                             TrainConfig(max_gaussians=4, densify_grad_threshold=2e-4, cap_turnover=t), 1.0)[0]
+           for t in (0.0, 0.5)]
+    assert len(out[0]) == len(out[1]) == 4           # at the cap either way
+    assert (out[0].opacity == g.opacity).all()        # 0: nothing replaced, nothing cloned
+    assert (out[1].opacity > logit(0.02)).all()       # 0.5: the faint two gave their rows to clones
+
+
 def _prune_opacity():
     low = dict(opacity=0.004)
     assert len(_densify(_pair(**low), TrainConfig(), grad=0)[0]) == 0        # below 0.005: pruned
@@ -900,6 +912,7 @@ CHECKS = {
     "percent_dense": _densify_effect(_percent_dense),
     "split_children": _densify_effect(_split_children),
     "split_scale_divisor": _densify_effect(_split_scale_divisor),
+    "cap_turnover": _densify_effect(_cap_turnover),
     "prune_opacity": _densify_effect(_prune_opacity),
     "prune_screen_size": _densify_effect(_prune_screen_size),
     "prune_world_size": _densify_effect(_prune_world_size),

@@ -90,6 +90,35 @@ def test_max_gaussians_budget_takes_largest_gradients():
     np.testing.assert_array_equal(src, np.arange(5))
 
 
+def test_cap_turnover_replaces_the_least_opaque_non_candidates():
+    """At the cap, cap_turnover x cap of the least opaque non-candidates make room for the candidates
+    that did not fit, largest gradient first, as many as they need; 0 leaves the cap as it was."""
+    g = _scene(8)
+    g.opacity[:] = [logit(p) for p in (0.9, 0.2, 0.05, 0.6, 0.3, 0.01, 0.8, 0.5)]
+    thr = CFG.densify_grad_threshold
+    grad = np.array([5, 0, 0, 4, 0, 0, 3, 0]) * thr      # candidates 0, 3, 6 (clones: one row each)
+    full = replace(CFG, max_gaussians=8)
+    stats = {}
+    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8), replace(full, cap_turnover=0.25), EXTENT,
+                                 stats=stats)
+    # room for 2 (0.25 x 8): rows 5 (0.01) and 2 (0.05) go; candidates 0 and 3 are cloned, 6 is not
+    np.testing.assert_array_equal(src, [0, 1, 3, 4, 6, 7, 0, 3])
+    assert (stats["cloned"], stats["replaced"], len(out)) == (2, 2, 8)
+    # more room than the candidates need: only as many rows as they take
+    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8), replace(full, cap_turnover=1.0), EXTENT,
+                                 stats=stats)
+    assert stats["replaced"] == 3 and len(out) == 8 and sorted(src[-3:]) == [0, 3, 6]
+    assert 5 not in src and 2 not in src and 1 not in src and 4 in src      # 0.01, 0.05, 0.2 go; 0.3 stays
+    # under the cap the free rows are used first, then the turnover
+    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8),
+                                 replace(CFG, max_gaussians=9, cap_turnover=0.25), EXTENT, stats=stats)
+    assert stats["replaced"] == 2 and len(out) == 9
+    # turnover 0: the cap as before, nothing replaced
+    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8), full, EXTENT, stats=stats)
+    np.testing.assert_array_equal(src, np.arange(8))
+    assert stats["replaced"] == 0
+
+
 def test_split_children_keep_the_parents_moments_and_motion():
     """Two children of a rotated, moving parent: centres +-a sigma along the major axis of the
     parent's conditional spatial covariance, that axis's std / 1.6, the other axes, velocity,
