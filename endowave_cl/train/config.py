@@ -180,7 +180,8 @@ class DensifySettings:
     split_scale_divisor: float = 1.6    # children's spatial scales = parent's / 1.6
     cap_turnover: float = 0.0           # at the cap, up to this fraction of it may be replaced per
                                         # densification: the least opaque non-candidates make room
-                                        # for the candidates with the largest gradient (densify.py)
+                                        # for the candidates with the largest gradient (densify.py;
+                                        # 0: 3DGS, nothing added at the cap; not a default: finding 46)
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
@@ -419,13 +420,15 @@ class TrainConfig:
 
 KEYS = ("recipe", *FLAT)     # every flat key, in the order --list-settings shows them
 
-# Named starting points (--recipe): the values that differ from the defaults above.  "paper" is
-# EndoWave as the paper trains it: 3DGS's learning rates and density control (opacity reset every
-# 3000 steps), 4DGS's schedule (30000 steps, densification from 500 to 15000), spherical harmonics
+# Named starting points (--recipe): the values that differ from the defaults above (and 3DGS's values
+# of keys whose default may move).  "paper" is EndoWave as the paper trains it: 3DGS's learning rates
+# and density control (threshold 2e-4 at every frame size, opacity reset every 3000 steps, nothing
+# replaced at the cap), 4DGS's schedule (30000 steps, densification from 500 to 15000), spherical harmonics
 # of degree 3, the RGB, depth (weight 1, DESIGN.md), flow and wavelet losses, no in-between steps,
 # Gaussians that start still, plain Adam (every Gaussian updated every step) and constant rates but
 # the positions'.  What the paper leaves open (flow and wavelet weights, the flow estimator:
-# OpenCV's in place of GMFlow) keeps this version's defaults.
+# OpenCV's in place of GMFlow) keeps this version's defaults, and so does the 2D low-pass
+# (gaussians.LOWPASS, 0.1 px^2 against 3DGS's 0.3), which is a constant of the renderer, not a key.
 RECIPES: Dict[str, Dict[str, Any]] = {
     "default": {},
     "paper": {
@@ -433,6 +436,7 @@ RECIPES: Dict[str, Dict[str, Any]] = {
         "opacity_reset_every": 3000, "lr_position_init": 1.6e-4, "lr_position_final": 1.6e-6,
         "lr_position_steps": 30000, "lr_anneal_final": 1.0, "adam_skip_culled": False,
         "sh_degree": 3, "lambda_depth": 1.0, "lambda_dssim": 0.2, "between_prob": 0.0, "init_velocity": False,
+        "densify_grad_threshold": 2e-4, "cap_turnover": 0.0, "lr_features": 2.5e-3,
         "use_depth": True, "use_flow": True, "use_wavelet": True,
     },
 }
