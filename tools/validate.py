@@ -18,8 +18,8 @@ report (``--test``: the usual split, the test frames scored; use a tag of its ow
 Scenes (--scenes, comma-separated): pulling (the EndoNeRF pulling frames at --downscale 2),
 traction and pushing (shared/data/endonerf_clips, 320x256), synth (a 320x256 synthetic scene of 48
 frames with exact depth and flow, made once under OUT); pulling640 (the pulling frames at their full
-640x512: only when --scenes names it, e.g. the report's ``--test --minutes 60 --scenes pulling640``).  Runs go to OUT/TAG/SCENE_sSEED and are
-kept: a run with an eval.json is not trained again.  Prints per run, per scene (mean over seeds)
+640x512: only when --scenes names it, e.g. the report's ``--test --minutes 60 --scenes pulling640``).
+Runs go to OUT/TAG/SCENE_sSEED and are kept: a run with an eval.json is not trained again.  Prints per run, per scene (mean over seeds)
 and the per-frame margin over the teacher against the motion between the frame's neighbours, and
 writes OUT/TAG/summary.json.
 """

@@ -159,13 +159,12 @@ def densify_and_prune(g: Gaussians, grad_accum: np.ndarray, count: np.ndarray, m
         spent = np.cumsum(cost[order])                               # [C]
         # At the cap, up to cap_turnover x cap of the least opaque non-candidates give their rows to
         # the candidates that did not fit, largest gradient first.
-        turnover = int(getattr(cfg, "cap_turnover", 0.0) * cfg.max_gaussians) if cfg.max_gaussians > 0 else 0
+        turnover = int(cfg.cap_turnover * cfg.max_gaussians) if cfg.max_gaussians > 0 else 0
         if turnover > 0 and spent[-1] > budget:
             pool = np.flatnonzero(~candidate)
             pool = pool[np.argsort(sigmoid(g.opacity[pool]), kind="stable")][:turnover]   # [V]
-            extra = int(min(pool.size, spent[-1] - budget))
-            fits = spent <= budget + extra
-            needed = int(max(0, (spent[fits][-1] if fits.any() else 0) - budget))
+            taken = spent[spent <= budget + pool.size]        # what the candidates that now fit take
+            needed = int(max(0, taken[-1] - budget)) if taken.size else 0
             victim[pool[:needed]] = True
             budget += needed
         fits = spent <= budget

@@ -460,7 +460,7 @@ class Trainer:
             self.stats["max_radius"].get(), self.cfg, self.extent,
             prune_big=self.step > self.cfg.opacity_reset_every, stats=info)
         for k in self.density_counts:
-            self.density_counts[k] += int(info.get(k, 0))
+            self.density_counts[k] += int(info[k])
         order = temporal_row_order(new_g)   # the rows alive at one time together (a permutation)
         self.set_gaussians(new_g.take(order),
                            moment_source_index(source[order], info["is_new"][order]))  # new rows: zero moments

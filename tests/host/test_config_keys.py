@@ -61,7 +61,7 @@ def _loop(scene, rt, tmp_path, **kw):
     def densify_and_prune(g, grad_accum, count, max_radius, cfg, extent, prune_big=False, stats=None):
         ev["densify"].append(tr.step)
         ev["prune_big"].append(prune_big)
-        stats["is_new"] = np.zeros(len(g), bool)
+        stats.update(cloned=0, split=0, pruned=0, replaced=0, is_new=np.zeros(len(g), bool))
         return g, np.arange(len(g))
 
     tr.train_step = step
