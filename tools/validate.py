@@ -19,7 +19,8 @@ Scenes (--scenes, comma-separated): pulling (the EndoNeRF pulling frames at --do
 traction and pushing (shared/data/endonerf_clips, 320x256), synth (a 320x256 synthetic scene of 48
 frames with exact depth and flow, made once under OUT); pulling640 (the pulling frames at their full
 640x512: only when --scenes names it, e.g. the report's ``--test --minutes 60 --scenes pulling640``).
-Runs go to OUT/TAG/SCENE_sSEED and are kept: a run with an eval.json is not trained again.  Prints per run, per scene (mean over seeds)
+Runs go to OUT/TAG/SCENE_sSEED and are kept (their checkpoints only with --keep-checkpoints): a run
+with an eval.json is not trained again.  Prints per run, per scene (mean over seeds)
 and the per-frame margin over the teacher against the motion between the frame's neighbours, and
 writes OUT/TAG/summary.json.
 """
@@ -90,6 +91,11 @@ def train_and_eval(name: str, seed: int, a, shared: Path, base: Path) -> Path:
     t0 = time.perf_counter()
     if _run(cmd, log) != 0 or _run(_cli("eval", run, "--fps-runs", 0), log) != 0:
         raise SystemExit(f"validate: error: {name} seed {seed} failed (see {log})")
+    if not a.keep_checkpoints:
+        # the figures are in eval.json; a screen of many candidates otherwise fills the disk
+        # (three checkpoints of 100-200 MB per run at the density cap)
+        for ck in run.glob("checkpoint_*.npz"):
+            ck.unlink()
     print(f"  {name} seed {seed}: trained and scored in {time.perf_counter() - t0:.0f} s", flush=True)
     return run
 
@@ -138,6 +144,8 @@ def main(argv=None) -> int:
                                               "screening; unlike --iterations, densification and the late phase "
                                               "keep their share)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="train's --set (repeatable)")
+    ap.add_argument("--keep-checkpoints", action="store_true",
+                    help="keep each run's checkpoints (default: deleted once the run is scored)")
     ap.add_argument("--summary", action="store_true", help="train nothing: summarise the runs already there")
     ap.add_argument("--test", action="store_true",
                     help="the final report: train on the usual split and score the TEST frames (read them once, "

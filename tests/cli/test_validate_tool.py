@@ -69,3 +69,36 @@ def test_summary_covers_every_finished_run_of_the_tag(tmp_path):
     summary = json.loads((tmp_path / "cand" / "summary.json").read_text())
     assert sorted(summary["scenes"]) == ["_by_motion", "pushing", "traction"]
     assert [x["scene"] for x in summary["runs"]] == ["traction", "pushing"]
+
+
+def _load_tool():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("validate_tool", TOOL)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_checkpoints_are_deleted_once_scored_unless_kept(tmp_path, monkeypatch):
+    """A screen runs hundreds of trainings: their checkpoints go once eval.json is written."""
+    tool = _load_tool()
+    scene = tmp_path / "shared" / "data" / "endonerf_clips" / "traction"
+    scene.mkdir(parents=True)
+
+    def fake_run(cmd, log):
+        cmd = list(map(str, cmd))
+        if "train" in cmd:
+            run = Path(cmd[cmd.index("--out") + 1])
+            for step in (1000, 2000):
+                (run / f"checkpoint_{step:07d}.npz").write_bytes(b"x")
+        else:
+            (Path(cmd[cmd.index("eval") + 1]) / "eval.json").write_text("{}")
+        return 0
+
+    monkeypatch.setattr(tool, "_run", fake_run)
+    for keep, tag in ((False, "a"), (True, "b")):
+        args = tool.argparse.Namespace(test=False, recipe=None, minutes=None, iterations=None, set=[], steps=None,
+                                       keep_checkpoints=keep)
+        run = tool.train_and_eval("traction", 0, args, tmp_path / "shared", tmp_path / "out" / tag)
+        assert (run / "eval.json").is_file()
+        assert len(list(run.glob("checkpoint_*.npz"))) == (2 if keep else 0)
