@@ -72,6 +72,21 @@ def stale_temporaries(folder):
     return sorted(out)
 
 
+def named_oserror(e: OSError, path) -> OSError:
+    """``e`` with the file or folder it concerns named, for the one-line error.  A write error from
+    ``f.write`` carries no file name, and numpy's short write ("61440 requested and 60384 written",
+    no errno) does not say why: a full disk."""
+    if e.filename is not None:
+        return e
+    text = e.strerror or str(e)
+    short = re.fullmatch(r"(\d+) requested and (\d+) written", text) if e.errno is None else None
+    if short:
+        text = f"only {short[2]} of {short[1]} bytes were written: is the disk full?"
+    named = OSError(e.errno, text, str(path))
+    named.__cause__ = e
+    return named
+
+
 @contextlib.contextmanager
 def atomic_open(path):
     """Open a temporary file beside ``path`` for binary writing; on success it is flushed, synced
@@ -86,9 +101,11 @@ def atomic_open(path):
             os.fchmod(f.fileno(), default_file_mode())
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise named_oserror(e, path) from e
         raise
 
 
@@ -156,8 +173,10 @@ def atomic_directory(final, force: bool = False):
     try:
         os.chmod(tmp, 0o777 & ~_umask())   # mkdtemp's 0700 would make the finished folder private
         yield tmp
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, OSError):
+            raise named_oserror(e, final) from e
         raise
     old = None
     if final.exists():
