@@ -178,10 +178,11 @@ class DensifySettings:
     percent_dense: float = 0.01         # clone if max spatial scale <= this x extent, else split
     split_children: int = 2
     split_scale_divisor: float = 1.6    # children's spatial scales = parent's / 1.6
-    cap_turnover: float = 0.0           # at the cap, up to this fraction of it may be replaced per
+    cap_turnover: float = 0.02          # at the cap, up to this fraction of it may be replaced per
                                         # densification: the least opaque non-candidates make room
                                         # for the candidates with the largest gradient (densify.py;
-                                        # 0: 3DGS, nothing added at the cap; not a default: finding 46)
+                                        # 0: 3DGS, nothing added at the cap).  Every scene sits at
+                                        # its cap for most of a run, where 3DGS's rules add nothing
     prune_opacity: float = 0.005        # prune sigmoid(opacity) below this
     prune_screen_size: float = 20.0     # pixels: prune larger max screen radius (after 1st reset)
     prune_world_size: float = 0.1       # x extent: prune larger max spatial scale (after 1st reset)
