@@ -114,7 +114,8 @@ def test_cap_turnover_replaces_the_least_opaque_non_candidates():
                                  replace(CFG, max_gaussians=9, cap_turnover=0.25), EXTENT, stats=stats)
     assert stats["replaced"] == 2 and len(out) == 9
     # turnover 0: the cap as before, nothing replaced
-    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8), full, EXTENT, stats=stats)
+    out, src = densify_and_prune(g, grad, np.ones(8), np.zeros(8), replace(full, cap_turnover=0.0), EXTENT,
+                                 stats=stats)
     np.testing.assert_array_equal(src, np.arange(8))
     assert stats["replaced"] == 0
 
