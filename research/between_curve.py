@@ -1,7 +1,7 @@
 """How far a trained model is from its in-between teacher across a pair, not only at its middle
 (research/QUALITY.md, finding 38).
 
-    python research/between_curve.py RUN [--fractions 9] [--plain 8]
+    python research/between_curve.py RUN [--fractions 9] [--plain 8] [--per-pair]
 
 For the training pairs around the run's scored frames (its validation or test frames: pairs two
 frame spacings long) and for up to --plain pairs of adjacent training frames (one spacing), the PSNR
@@ -10,6 +10,8 @@ static target, no model) and against the model's own renders at the pair's two f
 linearly (1 - s) R0 + s R1 (how far the render at s is from a cross-fade of its ends), per s on a
 grid of --fractions points from 0 to 1.  s = 0 and 1 are the training frames themselves, where the
 teacher is the frame.  Masks are applied as eval applies them.  Training frames only are read.
+--per-pair also prints each pair around a scored frame on its own, with the mean flow magnitude
+between its two frames (Teacher.motion), so that nearly still pairs can be told from moving ones.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ def main(argv=None) -> int:
     ap.add_argument("run", help="a training run folder (config.json and a checkpoint)")
     ap.add_argument("--fractions", type=int, default=9, help="grid points from s=0 to s=1")
     ap.add_argument("--plain", type=int, default=8, help="adjacent training pairs to sample as well")
+    ap.add_argument("--per-pair", action="store_true", help="also one row per pair around a scored frame")
     a = ap.parse_args(argv)
     from endowave_cl.baselines import neighbours, teacher_for
     from endowave_cl.errors import EndowaveError
@@ -78,6 +81,11 @@ def main(argv=None) -> int:
         print("    s              " + " ".join(f"{s:>6.3f}" for s in grid))
         print("    model~teacher  " + " ".join(f"{v:>6.2f}" for v in vs_teacher.mean(0)))
         print("    model~fade     " + " ".join(f"{v:>6.2f}" for v in vs_fade.mean(0)))
+        if a.per_pair and name.startswith("around"):
+            for r, i in enumerate(idx):
+                p = pairs[i]
+                print(f"    {p.src:>3}-{p.dst:<3} {teacher.motion(p.src, p.dst):5.2f} px "
+                      + " ".join(f"{v:>6.2f}" for v in vs_teacher[r]))
     return 0
 
 
