@@ -30,10 +30,6 @@ BINS = (0.0, 1.0, 2.0, 4.0, np.inf)   # px between the pair's frames
 COLUMNS = ("teacher", "dis1", "dis2", "t3_dis2", "t2_dis2", "t1_dis2", "t1_dis1")
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10.0 * np.log10(max(float(np.mean((a - b) ** 2)), 1e-12)))
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--shared", default=str(Path(__file__).resolve().parents[1].parent / "shared"))
@@ -41,6 +37,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from endowave_cl.baselines import dis_interpolations, neighbours, teacher_for
     from endowave_cl.data.scene import apply_split, load_scene
+    from endowave_cl.metrics import psnr
 
     rows = []
     for name in [s for s in a.scenes.split(",") if s]:
@@ -64,7 +61,7 @@ def main(argv=None) -> int:
                      "t2_dis2": (2 * t + d2) / 3, "t1_dis2": 0.5 * (t + d2), "t1_dis1": 0.5 * (t + d1)}
             truth = scene.frames[v].image
             r = {"scene": name, "frame": v, "motion": float(teacher.motion(i0, i1))}
-            r.update({k: _psnr(p, truth) for k, p in preds.items()})
+            r.update({k: psnr(p, truth) for k, p in preds.items()})
             rows.append(r)
             print(f"{name:<9} {v:>4} {r['motion']:6.2f} px " + " ".join(f"{k} {r[k]:6.2f}" for k in COLUMNS), flush=True)
     if not rows:
