@@ -13,6 +13,13 @@ __kernel void add_inplace_f32(__global float *out, __global const float *x, cons
     if (i < n) out[i] += x[i];
 }
 
+/* avg[i] += w (x[i] - avg[i]) for i < n: with w = 1 / k at the k-th snapshot, avg is the uniform
+ * mean of the snapshots so far (train/average.py: the parameters averaged over the last steps). */
+__kernel void average_into_f32(__global float *avg, __global const float *x, const float w, const int n) {
+    int i = get_global_id(0);
+    if (i < n) avg[i] += w * (x[i] - avg[i]);
+}
+
 /* Sum of x[i] into *out with the CAS float add: a test of atomic_add_global_f.
  * Each work-group reduces in local memory, then adds once. */
 __kernel void atomic_sum_f32(__global const float *x, const int n, volatile __global float *out,

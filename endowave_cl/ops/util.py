@@ -58,6 +58,16 @@ def add_inplace(rt, out, x) -> None:
                      np.int32(out.size))
 
 
+def average_into(rt, avg, x, w: float) -> None:
+    """avg += w (x - avg), elementwise, for float32 device arrays of the same size (enqueued, not
+    waited on): with w = 1 / k at the k-th snapshot, avg stays the mean of the snapshots."""
+    if avg.size != x.size:
+        raise ValueError(f"average_into: sizes differ ({avg.size} and {x.size})")
+    if avg.size:
+        rt.launch_1d(rt.kernel("util.cl", "average_into_f32"), avg.size, WORK_GROUP, avg.data, x.data,
+                     np.float32(w), np.int32(avg.size))
+
+
 def any_nonfinite(rt, arrays) -> bool:
     """True when any element of the given float32 device arrays is NaN or infinite (one read-back)."""
     return bool(nonfinite_flag(rt, arrays).get()[0])

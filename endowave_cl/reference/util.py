@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Optional
 
+import numpy as np
+
 from ..ops.util import GATE_NONFINITE, GATE_PAIRS, GATE_ROWS, GATE_SUPERVISED
 
 
@@ -21,3 +23,9 @@ def step_gate_ref(skip: int, nonfinite_grads: int, nonfinite_loss: int, rows_cou
     if supervised is not None and supervised == 0:
         s |= GATE_SUPERVISED
     return s
+
+
+def average_into_ref(avg: np.ndarray, x: np.ndarray, w: float) -> np.ndarray:
+    """avg + w (x - avg) in float32 (cl/util.cl average_into_f32, ops/util.py average_into)."""
+    avg = np.asarray(avg, np.float32)
+    return avg + np.float32(w) * (np.asarray(x, np.float32) - avg)

@@ -159,6 +159,10 @@ class OptimSettings:
                                         # (parameters and moments), as gsplat's SelectiveAdam: a 4D
                                         # Gaussian outside its lifetime does not drift on momentum,
                                         # and Adam reads only the live rows (ops/adam.py)
+    average_last: float = 0.0           # the model saved at the end is the mean of the parameters
+                                        # over this last fraction of the steps (never before
+                                        # densify_until: the rows must be fixed), a snapshot every
+                                        # train/average.py AVERAGE_EVERY steps; 0: the last step's
 
 
 @dataclass(frozen=True)
@@ -437,7 +441,7 @@ RECIPES: Dict[str, Dict[str, Any]] = {
         "opacity_reset_every": 3000, "lr_position_init": 1.6e-4, "lr_position_final": 1.6e-6,
         "lr_position_steps": 30000, "lr_anneal_final": 1.0, "adam_skip_culled": False,
         "sh_degree": 3, "lambda_depth": 1.0, "lambda_dssim": 0.2, "between_prob": 0.0, "init_velocity": False,
-        "densify_grad_threshold": 2e-4, "cap_turnover": 0.0, "lr_features": 2.5e-3,
+        "densify_grad_threshold": 2e-4, "cap_turnover": 0.0, "lr_features": 2.5e-3, "average_last": 0.0,
         "use_depth": True, "use_flow": True, "use_wavelet": True,
     },
 }
@@ -543,7 +547,7 @@ RANGES = {
     "lr_position_init": _NON_NEGATIVE, "lr_position_final": _NON_NEGATIVE, "lr_position_steps": _NON_NEGATIVE,
     "lr_time": _NON_NEGATIVE, "lr_features": _NON_NEGATIVE, "lr_features_rest_divisor": _POSITIVE,
     "lr_opacity": _NON_NEGATIVE, "lr_scales": _NON_NEGATIVE, "lr_scales_t": _NON_NEGATIVE, "lr_rotation": _NON_NEGATIVE,
-    "lr_phase": _NON_NEGATIVE, "lr_anneal_final": _POSITIVE,
+    "lr_phase": _NON_NEGATIVE, "lr_anneal_final": _POSITIVE, "average_last": _UNIT,
     "densify_from": _NON_NEGATIVE, "densify_every": _AT_LEAST_1, "densify_until": _NON_NEGATIVE,
     "densify_grad_threshold": _NON_NEGATIVE, "percent_dense": _NON_NEGATIVE, "split_children": _AT_LEAST_1,
     "split_scale_divisor": _POSITIVE, "cap_turnover": _UNIT, "prune_opacity": (0, 1, True, False), "prune_screen_size": _POSITIVE,

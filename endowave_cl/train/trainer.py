@@ -48,6 +48,7 @@ from ..ops.util import GATE_PAIRS, GATE_ROWS, GATE_SUPERVISED, PendingRead, nonf
 from ..progress import hold_rate, progress as progress_bar, restart_rate
 from ..render import DEPTH, FLOW, accumulate_stats, render, render_backward
 from . import curves
+from .average import ParameterAverage, average_start
 from .between import BetweenSampler
 from .between_device import motion_on_device
 from .budget import MIN_TIMED_STEPS, RATE_WINDOW, WARMUP_STEPS, BudgetPlan
@@ -154,6 +155,7 @@ class Trainer:
         self.density_counts = {"cloned": 0, "split": 0, "pruned": 0, "replaced": 0}   # over the run
         self._skip = cla.zeros(rt.queue, (1,), np.int32)   # the step gate (ops/util.py step_gate)
         self.history: List[Dict[str, float]] = []
+        self._average: Optional[ParameterAverage] = None   # the late steps' mean (cfg.average_last)
 
         self.flows = self._load_flows()
         ckpt_path, ck = self._run.resume_point(scene)   # newest readable checkpoint of this scene
@@ -468,6 +470,7 @@ class Trainer:
     def set_gaussians(self, g: Gaussians, source_index: np.ndarray):
         """Replace the parameters; row i's Adam moments come from old row source_index[i] (< 0: zero)."""
         self.params = upload(self.rt, g)
+        self._average = None      # its rows are not these
         self.adam.remap(self.params, source_index)
         self._reset_stats()
 
@@ -478,6 +481,28 @@ class Trainer:
         it does not restart the gradient statistics that choose what to densify."""
         opacity_reset(self.rt, self.params["opacity"], np.float32(logit(self.cfg.opacity_reset_value)))
         self.adam.reset_moments("opacity")
+
+    def average_step(self) -> None:
+        """After a step is enqueued: its parameters enter the late steps' mean when it is due
+        (train/average.py); the first step of the window starts it."""
+        if self.step < average_start(self.cfg):
+            return
+        if self._average is None:
+            self._average = ParameterAverage(self.rt, self.params, self.step)
+        elif self._average.due(self.step):
+            self._average.add(self.params)
+
+    def _use_average(self) -> Optional[Dict[str, object]]:
+        """At the end of a run: the last step's figures, then the mean written into the parameters
+        (None where nothing was averaged)."""
+        a = self._average
+        if a is None or a.count < 2:
+            return None
+        last = self.evaluate()
+        a.copy_to(self.params)
+        self._average = None
+        return {"from_step": a.first, "snapshots": a.count,
+                "last_step": {k: last[k] for k in ("psnr", "psnr_masked", "ssim") if k in last}}
 
     # ------------------------------------------------------------------ evaluation, checkpoints
     def evaluate(self) -> Dict[str, float]:
@@ -604,6 +629,7 @@ class Trainer:
                 settle_pending()
             state = self._host_state() if self._defer else None
             kind, result = self.schedule_step(order)
+            self.average_step()
             if pending is not None and settle_pending():   # the step before, read now this one is enqueued
                 step_times.append(time.perf_counter() - t_step)
                 continue                     # this step was skipped behind it: it is drawn again
@@ -646,8 +672,14 @@ class Trainer:
         bar.close()
         seconds, build_seconds = self._split_build_time(time.perf_counter() - t_start, step_times,
                                                         loop_build0, warm_build)
+        averaged = self._use_average()
         self.save()
         metrics = self.evaluate()
+        if averaged is not None:
+            metrics["averaged"] = averaged
+            self.log(f"the saved model is the mean of {averaged['snapshots']} snapshots from step "
+                     f"{averaged['from_step']}: {self.scene.split} PSNR {metrics['psnr']:.2f} dB "
+                     f"(the last step alone {averaged['last_step']['psnr']:.2f})")
         metrics.update({"step": self.step, "gaussians": len(self.params["means"]), "train_seconds": seconds,
                         "redone_steps": self.redone_steps, "density_control": dict(self.density_counts),
                         "build_seconds": build_seconds})

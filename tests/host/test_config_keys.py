@@ -568,6 +568,38 @@ def _between_anneal_final(scene, rt, tmp_path):
     assert [t not in train_times for t in times] == [True] * 5 + [False]
 
 
+def _average_last(scene, rt, tmp_path, monkeypatch):
+    """average_last: the saved model is the mean of the parameters at every AVERAGE_EVERY-th step
+    of the last fraction of the steps, never before densify_until; the last step's figures are
+    logged beside it.  0: the last step's parameters, nothing logged."""
+    import endowave_cl.train.average as average
+    from endowave_cl.checkpoint import load_checkpoint
+    from endowave_cl.gaussians import PARAM_NAMES, download
+    monkeypatch.setattr(average, "AVERAGE_EVERY", 2)
+    kw = dict(iterations=10, densify_from=1, densify_every=2, densify_until=6)
+    for last, first in ((0.5, 7), (0.2, 8)):   # the window starts after densify_until / at 80 %
+        tr = _trainer(scene, rt, tmp_path / str(last), average_last=last, **kw)
+        snaps, hook = [], tr.average_step
+
+        def record():
+            hook()
+            a = tr._average
+            if a is not None and (tr.step == a.first or a.due(tr.step)):
+                snaps.append((tr.step, download(tr.params)))
+        tr.average_step = record
+        m = tr.train(progress=False)
+        assert [s for s, _ in snaps] == list(range(first, 11, 2))
+        assert m["averaged"]["from_step"] == first and m["averaged"]["snapshots"] == len(snaps)
+        assert set(m["averaged"]["last_step"]) >= {"psnr", "ssim"}
+        saved = load_checkpoint(tr._run.last_saved)["gaussians"]
+        for name in PARAM_NAMES:
+            want = np.mean([getattr(g, name) for _, g in snaps], axis=0)
+            np.testing.assert_allclose(getattr(saved, name), want, rtol=1e-5, atol=1e-6, err_msg=name)
+        assert not np.array_equal(saved.means, snaps[-1][1].means)
+    tr = _trainer(scene, rt, tmp_path / "off", **kw)
+    assert "averaged" not in tr.train(progress=False)
+
+
 def _adam_skip_culled(scene, rt, tmp_path):
     """adam_skip_culled: a Gaussian culled at the step's time (here: behind the camera) keeps its
     parameters and moments; without it, Adam moves it on the momentum of earlier steps."""
@@ -905,6 +937,7 @@ CHECKS = {
     "lr_phase": _lr("lr_phase", "phase", 0.01),
     "lr_anneal_final": _lr_anneal_final,
     "adam_skip_culled": _adam_skip_culled,
+    "average_last": _average_last,
     "densify_from": _loop_effect("densify_from", 3, _densify_from),
     "densify_every": _loop_effect("densify_every", 3, _densify_every),
     "densify_until": _loop_effect("densify_until", 6, _densify_until),

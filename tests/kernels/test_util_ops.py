@@ -145,3 +145,32 @@ def test_pending_read_matches_read_back(rt):
     np.testing.assert_array_equal(got["b"], np.arange(7))
     np.testing.assert_array_equal(now["b"], np.full(7, -1))
     assert got["empty"].shape == (0,)
+
+
+@pytest.mark.oclgrind
+@pytest.mark.parametrize("n", [0, 1, 127, 128, 1000])
+def test_average_into_against_its_reference(rt, n):
+    """average_into against average_into_ref, in a partly filled last work-group and for an empty
+    array; a run of snapshots with w = 1 / k gives their mean."""
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import average_into
+    from endowave_cl.reference.util import average_into_ref
+    rng = np.random.default_rng(n)
+    snaps = [rng.standard_normal(n).astype(np.float32) * 10 for _ in range(5)]
+    avg = cla.to_device(rt.queue, snaps[0])
+    want = snaps[0]
+    for k, x in enumerate(snaps[1:], start=2):
+        average_into(rt, avg, cla.to_device(rt.queue, x), 1.0 / k)
+        want = average_into_ref(want, x, 1.0 / k)
+    got = avg.get()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got, np.mean(snaps, axis=0), rtol=1e-5, atol=1e-5)
+
+
+def test_average_into_refuses_sizes_that_differ(rt):
+    import pyopencl.array as cla
+
+    from endowave_cl.ops.util import average_into
+    with pytest.raises(ValueError, match="sizes differ"):
+        average_into(rt, cla.zeros(rt.queue, (4,), np.float32), cla.zeros(rt.queue, (5,), np.float32), 0.5)
