@@ -4,8 +4,8 @@ weight averaging; train/average.py, the `average_last` setting), for several win
     python research/weight_average.py SCENE --out RUN --minutes 6 --downscale 2 --validation \
         --windows 0.1,0.2,0.3,0.5 [--seed 0] [--lpips] [--set KEY=VALUE ...]
 
-One training run (the settings of `endowave-cl train` with the same options; average_last stays
-0, so the run itself saves its last step) keeps one running mean per window (the parameters at
+One training run (the settings of `endowave-cl train` with the same options, but average_last 0:
+the run itself saves its last step) keeps one running mean per window (the parameters at
 every train/average.py AVERAGE_EVERY-th step of the last fraction of the steps, never before
 densify_until); at the end the last step and each mean are scored on the run's scored frames
 (validation frames with --validation) with evaluate_run, the function eval uses.  Each mean costs
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     from endowave_cl.train.average import ParameterAverage, average_start
     from endowave_cl.train.trainer import Trainer
 
-    cfg = train_cmd.build_config(a)
+    cfg = train_cmd.build_config(a).replace(average_last=0.0)   # the windows below stand in for it
     scene = apply_split(load_scene(Path(a.scene), downscale=cfg.downscale, use_depth=cfg.use_depth), cfg.split)
     if not scene.has_depth:
         cfg = cfg.replace(use_depth=False)

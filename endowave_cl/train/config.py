@@ -159,10 +159,11 @@ class OptimSettings:
                                         # (parameters and moments), as gsplat's SelectiveAdam: a 4D
                                         # Gaussian outside its lifetime does not drift on momentum,
                                         # and Adam reads only the live rows (ops/adam.py)
-    average_last: float = 0.0           # the model saved at the end is the mean of the parameters
+    average_last: float = 0.1           # the model saved at the end is the mean of the parameters
                                         # over this last fraction of the steps (never before
                                         # densify_until: the rows must be fixed), a snapshot every
                                         # train/average.py AVERAGE_EVERY steps; 0: the last step's
+                                        # (research/QUALITY.md finding 51)
 
 
 @dataclass(frozen=True)

@@ -521,7 +521,9 @@ class Trainer:
         if not c.minutes > 0:
             return None
         # the final checkpoint and evaluation render every test frame once: a few steps' worth
-        reserve = min(0.1 * c.minutes * 60.0, 5.0 + 0.05 * len(self.scene.test_indices))
+        # (twice where the last step is scored before the averaged parameters replace it)
+        renders = len(self.scene.test_indices) * (2 if c.average_last > 0 else 1)
+        reserve = min(0.1 * c.minutes * 60.0, 5.0 + 0.05 * renders)
         return BudgetPlan.start(c, c.minutes, reserve, t_start=self.t_created)
 
     def _replan(self, budget, step_times: List[float], bar) -> bool:

@@ -28,6 +28,8 @@ def test_config_defaults_follow_design():
     # (finding 44), 3DGS's 0.2 in the paper's recipe
     assert (c.lambda_rgb, c.lambda_dssim, c.lambda_depth) == (1.0, 0.4, 0.1)
     assert recipe_config("paper").lambda_dssim == 0.2
+    # the saved model averages the last tenth of the steps (finding 51); the paper's is its last step
+    assert TrainConfig().average_last == 0.1 and recipe_config("paper").average_last == 0.0
 
 
 def test_load_config_toml_and_overrides(tmp_path):
