@@ -6,7 +6,8 @@ taken over the run's last `average_last` fraction of steps keeps what the late s
 The mean is kept on the device (cl/util.cl average_into_f32), a snapshot every AVERAGE_EVERY steps,
 and only once the rows are fixed (after densify_until: density control replaces rows, and the
 trainer drops the mean whenever it does).  The optimisation itself is unchanged: the mean is what
-the run saves at its end, beside the last step's figures in train_log.json.
+the run saves at its end, beside the last step's figures in train_log.json.  The mean is not in
+the checkpoints: a run resumed inside the window starts it again at the step it resumes from.
 """
 from __future__ import annotations
 
