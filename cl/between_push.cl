@@ -7,9 +7,9 @@
  * displacement / reach_f where reach_f > SPLAT_MIN_WEIGHT (else 0), where q's colour comes from;
  * pushed_f = img_f ([H, W, 4], its colour) sampled bicubically at q + back_f (between_sample.h),
  * clipped to [lo_f, hi_f].
- * out [H, W, 3] = (sum_f a_f reach_f pushed_f) / (sum_f a_f reach_f) over the frames with
- * reach_f > SPLAT_MIN_WEIGHT (a_0 = wa = 1 - s, a_1 = wb = s), or fill where that sum is not above
- * SPLAT_MIN_WEIGHT.  No adjoint. */
+ * out [H, W, 3] = (sum_f a_f min(reach_f, 1) pushed_f) / (sum_f a_f min(reach_f, 1)) over the
+ * frames with reach_f > SPLAT_MIN_WEIGHT (a_0 = wa = 1 - s, a_1 = wb = s), or fill where that sum
+ * is not above SPLAT_MIN_WEIGHT.  No adjoint. */
 #pragma OPENCL FP_CONTRACT OFF
 
 #include "between_sample.h"
@@ -33,7 +33,7 @@ __kernel void between_push(__global const long *acc0, __global const long *acc1,
         const float2 back = ok ? (float2)(from_fixed(acc[1]) / reach, from_fixed(acc[2]) / reach) : (float2)(0.0f);
         float3 pushed = sample_rgbm(f ? img1 : img0, W, H, (float)x + back.x, (float)y + back.y).xyz;
         pushed = f ? clamp(pushed, lo1, hi1) : clamp(pushed, lo0, hi0);
-        const float wt = ok ? (f ? wb : wa) * reach : 0.0f;
+        const float wt = ok ? (f ? wb : wa) * (reach < 1.0f ? reach : 1.0f) : 0.0f;
         image += (float3)(wt) * pushed;
         total += wt;
     }

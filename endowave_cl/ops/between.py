@@ -142,8 +142,8 @@ def between_splat(rt, g: Path, frame: Frame, acc=None):
 
 def between_push(rt, acc0, acc1, f0: Frame, f1: Frame, wa: float, wb: float, fill, min_weight: float):
     """[H, W, 3]: frames f0 and f1 pushed along the paths splatted into acc0 and acc1 (between_splat;
-    sampled bicubically) and blended with weights wa reach0 and wb reach1 where each reaches above
-    min_weight; fill where their sum does not (cl/between_push.cl, train/between.py
+    sampled bicubically) and blended with weights wa min(reach0, 1) and wb min(reach1, 1) where each
+    reach is above min_weight; fill where their sum is not (cl/between_push.cl, train/between.py
     reversed_splat_interpolation)."""
     h, w = _size(f0)
     out = rt.empty((h, w, 3))

@@ -64,7 +64,8 @@ def between_push_ref(img0: np.ndarray, img1: np.ndarray, splat0, splat1, wa: flo
                      fill: np.ndarray, min_weight: float) -> np.ndarray:
     """[H, W, 3]: train/between.py reversed_splat_interpolation's image from the two frames' splats
     ((den, num) each, between_splat_ref): each frame sampled (bicubically) where its splat says q's
-    colour comes from, blended by wa reach0 and wb reach1 where each exceeds min_weight, fill elsewhere."""
+    colour comes from, blended by wa min(reach0, 1) and wb min(reach1, 1) where each reach exceeds
+    min_weight, fill where their sum does not."""
     image = np.zeros(fill.shape, np.float32)
     total = np.zeros(fill.shape[:2], np.float32)
     for img, (den, num), a in ((img0, splat0, wa), (img1, splat1, wb)):
@@ -72,7 +73,7 @@ def between_push_ref(img0: np.ndarray, img1: np.ndarray, splat0, splat1, wa: flo
         back = np.zeros(num.shape, np.float32)
         back[ok] = num[ok] / den[ok][:, None]
         pushed = sample_displaced(img, back, "cubic")
-        wt = np.where(ok, np.float32(a) * den, np.float32(0))
+        wt = np.where(ok, np.float32(a) * np.minimum(den, np.float32(1)), np.float32(0))
         image += wt[..., None] * pushed
         total += wt
     out = np.array(fill, np.float32, copy=True)

@@ -50,11 +50,12 @@ pixel's colour bilinearly among the four pixels around where it lands would aver
 pixels at fractional offsets, the blur of a bilinear backward warp).  At every pixel q that the
 frame reaches, the splatted mean of the displacements of the pixels that land there says where q's
 colour comes from, and the frame is sampled there bicubically (reversed_splat); the two frames are
-blended with weights (1 - s) and s times how densely each reaches q, so that what one frame cannot
-see comes from the other (research/QUALITY.md finding 21).  With ``between_flow_splat`` the flows
-push the frames forward the same way (s F_kk' from the first frame, (1 - s) F_k'k from the second)
-instead of sampling them backward, the fused backward prediction filling the pixels that neither
-frame reaches.  The frames are pushed once, along the estimators' flows fused per pixel by how well
+blended with weights (1 - s) and s times how densely each reaches q, at most once, so that what one
+frame cannot see (or sees stretched) comes from the other, and a frame whose motion converges at q
+does not outweigh the other there (research/QUALITY.md findings 21, 52).  With
+``between_flow_splat`` the flows push the frames forward the same way (s F_kk' from the first
+frame, (1 - s) F_k'k from the second) instead of sampling them backward, the fused backward
+prediction filling the pixels that neither frame reaches.  The frames are pushed once, along the estimators' flows fused per pixel by how well
 each returns to its start (``consistent_flows``: forward-backward error), which is as good a
 teacher on the pulling frames as pushing every estimator's frames, at a third of the splats
 (research/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per
@@ -100,8 +101,9 @@ SAMPLER = "cubic"
 FUSE_RADIUS = 3
 FUSE_TAU = 0.02
 # consistent_flows: the forward-backward error (px) at which an estimator's weight falls by a
-# factor e against the most consistent one's
-PUSH_TAU = 1.0
+# factor e against the most consistent one's: a flow that fails to return by several pixels is left
+# out, smaller differences are averaged (research/QUALITY.md finding 52)
+PUSH_TAU = 4.0
 # between_levels: the most host memory the flow predictions kept per grid point may take (bytes);
 # past it the predictions of further (pair, grid point)s are made at every draw
 TARGET_CACHE_BYTES = 2 << 30
@@ -408,15 +410,19 @@ def reversed_splat(image: np.ndarray, g: np.ndarray, source_weight=None):
 def reversed_splat_interpolation(f0, f1, g0: np.ndarray, g1: np.ndarray, s: float, fill: np.ndarray) -> np.ndarray:
     """[H, W, 3]: frames f0 and f1 pushed forward along g0 and g1 ([H, W, 2]: each pixel's
     displacement from its frame to s) to fraction s (reversed_splat, the two on the host pool's
-    threads), blended with weights (1 - s) reach0 and s reach1 (a pixel that one frame reaches and
-    the other does not, or reaches thinly, comes from the first); fill where that weight is below
-    SPLAT_MIN_WEIGHT.  Tool pixels (masks) are not pushed."""
+    threads), blended with weights (1 - s) min(reach0, 1) and s min(reach1, 1) where each frame
+    reaches the pixel (reach: its splatted weight, above SPLAT_MIN_WEIGHT; a pixel that one frame
+    reaches and the other does not, or reaches thinly, comes from the first); fill where that weight
+    is not above SPLAT_MIN_WEIGHT.  A frame that splats more than a whole pixel's weight somewhere
+    (its motion converges there) counts as one that reaches it once: the frame that stretches there
+    is the less certain one, the one that converges is not the more certain (research/QUALITY.md
+    finding 52).  Tool pixels (masks) are not pushed."""
     pushed = tuple(_host_pool().map(_push, ((f0, g0), (f1, g1))))
     image = np.zeros(fill.shape, np.float32)
     total = np.zeros(fill.shape[:2], np.float32)
     for a, (w, reach) in ((1.0 - s, pushed[0]), (s, pushed[1])):
         ok = (reach > SPLAT_MIN_WEIGHT).view(np.uint8)                                   # [H, W]
-        wt = np.where(ok, np.float32(a) * reach, np.float32(0))                          # [H, W]
+        wt = np.where(ok, np.float32(a) * np.minimum(reach, np.float32(1)), np.float32(0))  # [H, W]
         image += cv2.merge((wt, wt, wt)) * w
         total += wt
     return _divide_where(image, total, fill)

@@ -453,6 +453,41 @@ def test_reversed_splat_interpolation_takes_what_one_frame_cannot_reach_from_the
     np.testing.assert_array_equal(image, fill)
 
 
+def test_reversed_splat_interpolation_counts_a_frame_once_where_its_motion_converges():
+    """Where frame 0's motion converges (every even column moved one pixel right, onto the odd
+    column beside it: a splatted weight of 2 there) and frame 1 reaches the pixel once, the frame
+    at s is the (1 - s, s) blend of the two pushed frames: a reach above 1 counts as 1.  Where
+    frame 0 reaches thinly (half a pixel's weight), its weight scales with its reach."""
+    from endowave_cl.data.scene import Frame
+    from endowave_cl.train.between import reversed_splat, reversed_splat_interpolation
+    rng = np.random.default_rng(11)
+    H, W = 8, 12
+    i0, i1 = (rng.uniform(0, 1, (H, W, 3)).astype(np.float32) for _ in range(2))
+    f0, f1 = Frame(0, 0.0, i0, None, None, None), Frame(1, 1.0, i1, None, None, None)
+    still = np.zeros((H, W, 2), np.float32)
+    s = 0.25
+    g0 = np.zeros((H, W, 2), np.float32)
+    g0[:, 0::2, 0] = 1.0
+    pushed0, reach0 = reversed_splat(i0, g0)
+    odd = np.zeros((H, W), bool)
+    odd[:, 1::2] = True
+    np.testing.assert_allclose(reach0[odd], 2.0, atol=1e-6)
+    image = reversed_splat_interpolation(f0, f1, g0, still, s, np.zeros((H, W, 3), np.float32))
+    np.testing.assert_allclose(image[odd], ((1 - s) * pushed0 + s * i1)[odd], atol=1e-6)
+    np.testing.assert_allclose(image[~odd], i1[~odd], atol=1e-6)      # frame 0 reaches no even column
+    # thin: a tool mask on every other column and a push of half a pixel give frame 0 half a weight
+    tool = np.ones((H, W), np.float32)
+    tool[:, 1::2] = 0.0
+    f0 = Frame(0, 0.0, i0, None, tool, None)
+    g0 = np.broadcast_to(np.float32([0.5, 0.0]), (H, W, 2)).copy()
+    pushed0, reach0 = reversed_splat(i0, g0, tool)
+    thin = (reach0 > 0.4) & (reach0 < 0.6)
+    assert thin.sum() >= H * (W // 2 - 1)
+    image = reversed_splat_interpolation(f0, f1, g0, still, s, np.zeros((H, W, 3), np.float32))
+    a0 = (1 - s) * reach0[..., None]
+    np.testing.assert_allclose(image[thin], ((a0 * pushed0 + s * i1) / (a0 + s))[thin], atol=1e-6)
+
+
 def test_between_target_pushes_the_flows_frames_forward():
     """flow_splat: the flow pushes the frames forward (exact for a translation: the translated
     frame inside); the backward warps fill where no pixel lands (the borders the motion uncovers)."""
@@ -494,12 +529,12 @@ def test_consistent_flows_takes_the_estimator_whose_flow_returns():
 
 def test_between_target_pushes_once_along_the_consistent_flow():
     """flow_splat: the frames are pushed once, along the estimators' flows fused by consistency; a
-    wrong, inconsistent second estimator is outvoted."""
+    second estimator that fails to return to its start by many times PUSH_TAU is outvoted."""
     import dataclasses as dc
-    from endowave_cl.train.between import between_target, consistent_flows
+    from endowave_cl.train.between import PUSH_TAU, between_target, consistent_flows
     scene, pair, tex = _scene_and_pair()
     H, W = pair.flow.shape[:2]
-    wrong = dc.replace(pair, flow=pair.flow + np.float32([3.0, 0.0]), flow_bw=np.zeros_like(pair.flow_bw))
+    wrong = dc.replace(pair, flow=pair.flow + np.float32([12.0 * PUSH_TAU, 0.0]), flow_bw=np.zeros_like(pair.flow_bw))
     inner = (slice(8, -8), slice(8, -8))
     truth = scene.frames[1].image[inner]
     kw = dict(extra=[wrong], flow_splat=True, fuse="mean")
