@@ -55,8 +55,8 @@ frame cannot see (or sees stretched) comes from the other, and a frame whose mot
 does not outweigh the other there (research/QUALITY.md findings 21, 52).  With
 ``between_flow_splat`` the flows push the frames forward the same way (s F_kk' from the first
 frame, (1 - s) F_k'k from the second) instead of sampling them backward, the fused backward
-prediction filling the pixels that neither frame reaches.  The frames are pushed once, along the estimators' flows fused per pixel by how well
-each returns to its start (``consistent_flows``: forward-backward error), which is as good a
+prediction filling the pixels that neither frame reaches.  The frames are pushed once, along the
+estimators' flows fused per pixel by how well each returns to its start (``consistent_flows``: forward-backward error), which is as good a
 teacher on the pulling frames as pushing every estimator's frames, at a third of the splats
 (research/QUALITY.md finding 22).  The fused flows depend on the pair alone and are made once per
 pair.
