@@ -8,9 +8,9 @@ Each validation frame ((i - 5) % 8 == 0, held out of the training frames) is pre
 teacher (train/between.py Teacher: the static target an in-between step trains on, built from the
 training pair around the frame as training builds it) and scored as eval scores a model (PSNR over
 the tool mask's pixels, LPIPS when its weights are installed).  A variant changes module constants
-of train/between.py (PUSH_TAU, FUSE_TAU, FUSE_RADIUS, SPLAT_MIN_WEIGHT) or in-between settings
-(between_flows, between_fuse, between_flow_splat, between_path), KEY=VALUE items separated by
-semicolons; the first column is the defaults.
+of train/between.py (PUSH_TAU, FUSE_TAU, FUSE_RADIUS, SPLAT_MIN_WEIGHT; SAMPLER, a warp.SAMPLERS
+name) or in-between settings (between_flows, between_fuse, between_flow_splat, between_path),
+KEY=VALUE items separated by semicolons; the first column is the defaults.
 No test frame is read.  The synthetic scene is the one tools/validate.py makes (skipped when absent).
 """
 from __future__ import annotations
@@ -25,7 +25,7 @@ SCENES = {"pulling": ("data/endonerf/pulling_soft_tissues", 2.0),
           "traction": ("data/endonerf_clips/traction", 1.0),
           "pushing": ("data/endonerf_clips/pushing", 1.0),
           "synth": (None, 1.0)}
-CONSTANTS = ("PUSH_TAU", "FUSE_TAU", "FUSE_RADIUS", "SPLAT_MIN_WEIGHT")
+CONSTANTS = ("PUSH_TAU", "FUSE_TAU", "FUSE_RADIUS", "SPLAT_MIN_WEIGHT", "SAMPLER")
 KEYS = ("between_flows", "between_fuse", "between_flow_splat", "between_path")
 
 
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
             for c, v in defaults.items():
                 setattr(between, c, v)
             for c, v in consts.items():
-                setattr(between, c, type(defaults[c])(float(v)))
+                setattr(between, c, v if isinstance(defaults[c], str) else type(defaults[c])(float(v)))
             cfg = with_values(TrainConfig(), keys, f"--variant {vname}", from_text=True) if keys else TrainConfig()
             teacher = between.Teacher(scene, cfg)
             scores = []

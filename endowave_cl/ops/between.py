@@ -24,6 +24,9 @@ from .util import WORK_GROUP, f32_literal
 SPLAT_FRAC_BITS = 32
 MAX_HYPOTHESES = 8       # between_fuse's most hypotheses (its per-pixel error array)
 INT64_ATOMICS = "cl_khr_int64_base_atomics"
+# the colour samplers of between_warp and between_push (warp.SAMPLERS' names) and their build options
+# (cl/between_sample.h)
+SAMPLER_OPTIONS = {"cubic": [], "lanczos": ["-DLANCZOS4"]}
 
 
 @dataclass
@@ -79,15 +82,23 @@ def _size(frame: Frame):
     return h, w
 
 
-def between_warp(rt, f0: Frame, f1: Frame, g0: Path, g1: Path, wa: float, wb: float, out=None):
+def _sampler_options(sampler: str):
+    if sampler not in SAMPLER_OPTIONS:
+        raise ValueError(f"between: sampler must be one of {', '.join(SAMPLER_OPTIONS)}, got {sampler!r}")
+    return SAMPLER_OPTIONS[sampler]
+
+
+def between_warp(rt, f0: Frame, f1: Frame, g0: Path, g1: Path, wa: float, wb: float, out=None,
+                 sampler: str = "cubic"):
     """(blend [H, W, 3], diff [H, W], ok [H, W]): f0 sampled at p - g0(p) and f1 at p - g1(p)
-    (bicubically, train/between.py SAMPLER: W0, W1); blend = wa W0 + wb W1, diff = sum_c |W0 - W1|,
-    ok = 1 where both warped masks show tissue (cl/between_warp.cl).  out: (blend, diff, ok) arrays
-    to write instead of new ones."""
+    (the colour by sampler, a key of SAMPLER_OPTIONS, as train/between.py SAMPLER names it: W0, W1);
+    blend = wa W0 + wb W1, diff = sum_c |W0 - W1|, ok = 1 where both warped masks show tissue
+    (cl/between_warp.cl).  out: (blend, diff, ok) arrays to write instead of new ones."""
     h, w = _size(f0)
+    opts = _sampler_options(sampler)
     if out is None:
         out = (rt.empty((h, w, 3)), rt.empty((h, w)), rt.empty((h, w)))
-    k = rt.kernel("between_warp.cl", "between_warp")
+    k = rt.kernel("between_warp.cl", "between_warp", opts)
     rt.launch_1d(k, h * w, WORK_GROUP, f0.image.data, f1.image.data, np.float32(f0.lo), np.float32(f0.hi),
                  np.float32(f1.lo), np.float32(f1.hi), np.int32(f0.has_mask), np.int32(f1.has_mask),
                  *g0.args(rt), *g1.args(rt),
@@ -140,14 +151,16 @@ def between_splat(rt, g: Path, frame: Frame, acc=None):
     return acc
 
 
-def between_push(rt, acc0, acc1, f0: Frame, f1: Frame, wa: float, wb: float, fill, min_weight: float):
+def between_push(rt, acc0, acc1, f0: Frame, f1: Frame, wa: float, wb: float, fill, min_weight: float,
+                 sampler: str = "cubic"):
     """[H, W, 3]: frames f0 and f1 pushed along the paths splatted into acc0 and acc1 (between_splat;
-    sampled bicubically) and blended with weights wa min(reach0, 1) and wb min(reach1, 1) where each
-    reach is above min_weight; fill where their sum is not (cl/between_push.cl, train/between.py
-    reversed_splat_interpolation)."""
+    the colour sampled by sampler, as between_warp) and blended with weights wa min(reach0, 1) and
+    wb min(reach1, 1) where each reach is above min_weight; fill where their sum is not
+    (cl/between_push.cl, train/between.py reversed_splat_interpolation)."""
     h, w = _size(f0)
     out = rt.empty((h, w, 3))
-    opts = [f"-DSPLAT_FRAC_BITS={SPLAT_FRAC_BITS}", f"-DSPLAT_MIN_WEIGHT={f32_literal(min_weight)}"]
+    opts = [f"-DSPLAT_FRAC_BITS={SPLAT_FRAC_BITS}", f"-DSPLAT_MIN_WEIGHT={f32_literal(min_weight)}",
+            *_sampler_options(sampler)]
     rt.launch_1d(rt.kernel("between_push.cl", "between_push", opts), h * w, WORK_GROUP, acc0.data, acc1.data,
                  f0.image.data, f1.image.data, np.float32(f0.lo), np.float32(f0.hi), np.float32(f1.lo),
                  np.float32(f1.hi), np.float32(wa), np.float32(wb), np.int32(w), np.int32(h), fill.data, out.data)

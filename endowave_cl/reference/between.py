@@ -13,12 +13,12 @@ from ..warp import sample_displaced, splat_forward
 
 
 def between_warp_ref(img0: np.ndarray, img1: np.ndarray, g0: np.ndarray, g1: np.ndarray, wa: float, wb: float,
-                     mask0: Optional[np.ndarray] = None, mask1: Optional[np.ndarray] = None):
+                     mask0: Optional[np.ndarray] = None, mask1: Optional[np.ndarray] = None, sampler: str = "cubic"):
     """(blend [H, W, 3], diff [H, W], ok [H, W]) float32: img0 at p - g0 and img1 at p - g1 (W0, W1,
-    bicubic, as train/between.py _warp_pair samples them); blend = wa W0 + wb W1, diff = sum_c |W0 - W1|,
-    ok = 1 where both masks sampled bilinearly exceed 0.5."""
-    w0 = sample_displaced(img0, -np.asarray(g0, np.float32), "cubic")
-    w1 = sample_displaced(img1, -np.asarray(g1, np.float32), "cubic")
+    the colour by sampler (warp.SAMPLERS), as train/between.py _warp_pair samples them); blend = wa W0
+    + wb W1, diff = sum_c |W0 - W1|, ok = 1 where both masks sampled bilinearly exceed 0.5."""
+    w0 = sample_displaced(img0, -np.asarray(g0, np.float32), sampler)
+    w1 = sample_displaced(img1, -np.asarray(g1, np.float32), sampler)
     ok = np.ones(w0.shape[:2], np.float32)
     for m, g in ((mask0, g0), (mask1, g1)):
         if m is not None:
@@ -61,9 +61,9 @@ def between_splat_ref(g: np.ndarray, mask: Optional[np.ndarray] = None):
 
 
 def between_push_ref(img0: np.ndarray, img1: np.ndarray, splat0, splat1, wa: float, wb: float,
-                     fill: np.ndarray, min_weight: float) -> np.ndarray:
+                     fill: np.ndarray, min_weight: float, sampler: str = "cubic") -> np.ndarray:
     """[H, W, 3]: train/between.py reversed_splat_interpolation's image from the two frames' splats
-    ((den, num) each, between_splat_ref): each frame sampled (bicubically) where its splat says q's
+    ((den, num) each, between_splat_ref): each frame sampled (by sampler) where its splat says q's
     colour comes from, blended by wa min(reach0, 1) and wb min(reach1, 1) where each reach exceeds
     min_weight, fill where their sum does not."""
     image = np.zeros(fill.shape, np.float32)
@@ -72,7 +72,7 @@ def between_push_ref(img0: np.ndarray, img1: np.ndarray, splat0, splat1, wa: flo
         ok = den > min_weight
         back = np.zeros(num.shape, np.float32)
         back[ok] = num[ok] / den[ok][:, None]
-        pushed = sample_displaced(img, back, "cubic")
+        pushed = sample_displaced(img, back, sampler)
         wt = np.where(ok, np.float32(a) * np.minimum(den, np.float32(1)), np.float32(0))
         image += wt[..., None] * pushed
         total += wt

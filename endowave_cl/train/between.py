@@ -507,7 +507,7 @@ class BetweenSampler:
     def device_target(self):
         """A between_device.DeviceTarget of this sampler on its runtime: the pairs' frames and
         flows uploaded, their fused flows and Bends made."""
-        return DeviceTarget(self.rt, self, FUSE_RADIUS, FUSE_TAU, SPLAT_MIN_WEIGHT, pair_bend)
+        return DeviceTarget(self.rt, self, FUSE_RADIUS, FUSE_TAU, SPLAT_MIN_WEIGHT, pair_bend, SAMPLER)
 
     def extra(self, pair) -> List[object]:
         """The further estimators' FlowPairs of the pair's two frames."""

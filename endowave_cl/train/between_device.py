@@ -44,13 +44,13 @@ class DeviceTarget:
     """The device half of a BetweenSampler (train/between.py): its frames, flows, fused flows and
     Bends on the device, and ``build``, the target of one draw."""
 
-    def __init__(self, rt, sampler, radius: int, tau: float, min_weight: float, pair_bend):
+    def __init__(self, rt, sampler, radius: int, tau: float, min_weight: float, pair_bend, colour: str = "cubic"):
         """sampler: the BetweenSampler; radius, tau: fused_interpolation's FUSE_RADIUS, FUSE_TAU;
-        min_weight: SPLAT_MIN_WEIGHT; pair_bend: between.pair_bend (passed in: between.py imports
-        this module)."""
+        min_weight: SPLAT_MIN_WEIGHT; pair_bend: between.pair_bend; colour: how the frames' colour
+        is sampled, between.SAMPLER (these passed in: between.py imports this module)."""
         check_int64_atomics(rt)
         self.rt, self.b = rt, sampler
-        self.radius, self.tau, self.min_weight = radius, tau, min_weight
+        self.radius, self.tau, self.min_weight, self.colour = radius, tau, min_weight, colour
         self._frames: Dict[int, Frame] = {}
         self._flows: Dict[int, object] = {}            # id(host array) -> device copy (kept with the host array)
         self._keep: List[np.ndarray] = []
@@ -121,7 +121,8 @@ class DeviceTarget:
         f0, f1 = self.frame(pair.src), self.frame(pair.dst)
         wa, wb = float(np.float32(1.0 - s)), float(np.float32(s))
         sources = [pair, *b.extra(pair)]
-        hyps = [between_warp(rt, f0, f1, *self._paths(index, p.flow, p.flow_bw, s, h), wa, wb)
+        hyps = [between_warp(rt, f0, f1, *self._paths(index, p.flow, p.flow_bw, s, h), wa, wb,
+                            sampler=self.colour)
                 for h, p in enumerate(sources)]
         if len(hyps) == 1:
             image, _, weight = hyps[0]
@@ -138,7 +139,7 @@ class DeviceTarget:
         """The two frames pushed forward along g0 and g1 (reversed splats), fill where neither reaches."""
         acc0 = between_splat(self.rt, g0, f0)
         acc1 = between_splat(self.rt, g1, f1)
-        return between_push(self.rt, acc0, acc1, f0, f1, wa, wb, fill, self.min_weight)
+        return between_push(self.rt, acc0, acc1, f0, f1, wa, wb, fill, self.min_weight, self.colour)
 
     def build(self, index: int, s: float, model_disp=None, model_weight: float = 0.0, model_fwd=None):
         """(image [H, W, 3], weight [H, W], count int32 [1]) device arrays: between_target of pair
@@ -154,7 +155,7 @@ class DeviceTarget:
         disp = self._motion(model_disp)
         # d0 = disp, d1 = disp -(1 - s) / s as blend_model_prediction forms them; a Path samples at p - g
         c = float(np.float32(-(1.0 - s) / s)) if s > 0.0 else 0.0
-        model, _, ok = between_warp(self.rt, f0, f1, Path(disp, -1.0), Path(disp, -c), wa, wb)
+        model, _, ok = between_warp(self.rt, f0, f1, Path(disp, -1.0), Path(disp, -c), wa, wb, sampler=self.colour)
         if model_fwd is not None:
             g0, g1 = (Path(self._motion(g), 1.0 if c is None else float(c)) for g, c in model_fwd)
             model = self._push(f0, f1, g0, g1, wa, wb, model)

@@ -46,9 +46,13 @@ def _close(got, want, tol=TOL):
     np.testing.assert_allclose(got, want, rtol=0, atol=tol)
 
 
+SAMPLERS = ["cubic", "lanczos"]     # the colour samplers of the warp and the push (ops/between.py)
+
+
 @pytest.mark.oclgrind
+@pytest.mark.parametrize("sampler", SAMPLERS)
 @pytest.mark.parametrize("masks", [True, False])
-def test_warp_matches_host(rt, masks):
+def test_warp_matches_host(rt, masks, sampler):
     h, w = small((37, 53), (9, 13))
     img, mask, flows = _scene(h, w, 1, masks)
     f0, f1 = _frame(rt, img[0], mask[0]), _frame(rt, img[1], mask[1])
@@ -58,8 +62,8 @@ def test_warp_matches_host(rt, masks):
         g1 = Path(B, p1[0]) if p1[1] is None else Path(B, p1[0], A, p1[1])
         hg0 = paths_ref([(p0[0], flows[0])] + ([] if p0[1] is None else [(p0[1], flows[1])]))
         hg1 = paths_ref([(p1[0], flows[1])] + ([] if p1[1] is None else [(p1[1], flows[0])]))
-        blend, diff, ok = (a.get() for a in between_warp(rt, f0, f1, g0, g1, 0.75, 0.25))
-        rb, rd, rok = between_warp_ref(img[0], img[1], hg0, hg1, 0.75, 0.25, mask[0], mask[1])
+        blend, diff, ok = (a.get() for a in between_warp(rt, f0, f1, g0, g1, 0.75, 0.25, sampler=sampler))
+        rb, rd, rok = between_warp_ref(img[0], img[1], hg0, hg1, 0.75, 0.25, mask[0], mask[1], sampler)
         _close(blend, rb)
         _close(diff, rd, tol=4 * TOL)
         np.testing.assert_array_equal(ok, rok)
@@ -68,19 +72,24 @@ def test_warp_matches_host(rt, masks):
 
 
 @pytest.mark.oclgrind
-def test_warp_borders_wild_and_nonfinite_paths(rt):
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_warp_borders_wild_and_nonfinite_paths(rt, sampler):
     h, w = small((24, 31), (8, 11))
     img, mask, _ = _scene(h, w, 2)
     g = np.zeros((h, w, 2), np.float32)
     g[0, :, 0] = 1e9          # far past the border (saturated positions, border replicated)
     g[1, :, 1] = -1e9
-    g[2, :3] = np.nan         # non-finite: remap samples the first pixel's row / column
+    g[2, :3] = np.nan         # non-finite: remap samples the first (bicubic) or last (Lanczos) pixel
     g[3, :3, 0] = np.inf
-    g[4:, :] = np.random.default_rng(0).uniform(-2 * w, 2 * w, (h - 4, w, 2))
+    g[3, 3:6, 1] = -np.inf
+    # offsets at odd multiples of 1/64 px: Lanczos-4 rounds positions to 1/32 px, half to even
+    g[4, :, 0] = (np.arange(w) - w // 2) * np.float32(1.0 / 64.0) * 3
+    g[5:, :] = np.random.default_rng(0).uniform(-2 * w, 2 * w, (h - 5, w, 2))
     f0, f1 = _frame(rt, img[0], mask[0]), _frame(rt, img[1], mask[1])
     G = _up(rt, g)
-    blend, diff, ok = (a.get() for a in between_warp(rt, f0, f1, Path(G, 1.0), Path(G, -0.5), 0.5, 0.5))
-    rb, rd, rok = between_warp_ref(img[0], img[1], g, -0.5 * g, 0.5, 0.5, mask[0], mask[1])
+    blend, diff, ok = (a.get() for a in between_warp(rt, f0, f1, Path(G, 1.0), Path(G, -0.5), 0.5, 0.5,
+                                                      sampler=sampler))
+    rb, rd, rok = between_warp_ref(img[0], img[1], g, -0.5 * g, 0.5, 0.5, mask[0], mask[1], sampler)
     _close(blend, rb)
     np.testing.assert_array_equal(ok, rok)
 
@@ -145,7 +154,8 @@ def test_splat_is_deterministic(rt):
 
 
 @pytest.mark.oclgrind
-def test_push_matches_host(rt):
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_push_matches_host(rt, sampler):
     h, w = small((31, 43), (9, 11))
     img, mask, flows = _scene(h, w, 7)
     g0, g1 = 0.4 * flows[0], -0.6 * flows[1]
@@ -154,9 +164,9 @@ def test_push_matches_host(rt):
     f0, f1 = _frame(rt, img[0], mask[0]), _frame(rt, img[1], mask[1])
     a0 = between_splat(rt, Path(_up(rt, g0), 1.0), f0)
     a1 = between_splat(rt, Path(_up(rt, g1), 1.0), f1)
-    got = between_push(rt, a0, a1, f0, f1, 0.6, 0.4, _up(rt, fill), 0.05).get()
+    got = between_push(rt, a0, a1, f0, f1, 0.6, 0.4, _up(rt, fill), 0.05, sampler).get()
     want = between_push_ref(img[0], img[1], between_splat_ref(g0, mask[0]), between_splat_ref(g1, mask[1]),
-                            0.6, 0.4, fill, 0.05)
+                            0.6, 0.4, fill, 0.05, sampler)
     _close(got, want)
     assert (got == 0.25).all(-1).any()      # some pixels reached by neither keep the fill
 
@@ -174,6 +184,14 @@ def test_mix_and_count(rt):
         np.testing.assert_array_equal(image.get(), ri)
         np.testing.assert_array_equal(wt.get(), rw)
         assert int(count.get()[0]) == rc
+
+
+def test_unknown_sampler_is_refused(rt):
+    img, mask, flows = _scene(5, 6, 3)
+    f0 = _frame(rt, img[0], mask[0])
+    with pytest.raises(ValueError, match="sampler must be one of cubic, lanczos"):
+        between_warp(rt, f0, f0, Path(_up(rt, flows[0]), 0.5), Path(_up(rt, flows[1]), 0.5), 0.5, 0.5,
+                     sampler="nearest")
 
 
 def test_stack(rt):
@@ -218,6 +236,16 @@ def test_device_target_matches_host_target(rt, tiny_scene, monkeypatch, settings
     b = _sampler(rt, load_scene(tiny_scene), monkeypatch, **settings)
     n = len(b.pairs)
     _compare_targets(b, [(0, 0.5), (n - 1, 0.13), (n // 2, 0.9)], 0)
+
+
+def test_device_target_matches_host_target_with_lanczos(rt, tiny_scene, monkeypatch):
+    """train/between.py SAMPLER reaches the device target's every warp and push."""
+    import endowave_cl.train.between as between
+    from endowave_cl.data.scene import load_scene
+    monkeypatch.setattr(between, "SAMPLER", "lanczos")
+    b = _sampler(rt, load_scene(tiny_scene), monkeypatch)
+    assert b.device.colour == "lanczos"
+    _compare_targets(b, [(0, 0.5), (len(b.pairs) - 1, 0.13)], 2)
 
 
 def test_device_target_matches_host_target_on_pulling(rt, pulling_scene, monkeypatch):
