@@ -32,29 +32,77 @@ INLINE float2 cell(const float m, const int n) {
 }
 
 #ifdef LANCZOS4
-/* OpenCV's interpolateLanczos4 at fraction k / 32: the weights of the taps at x0 - 3 .. x0 + 4,
- * sin(pi t) sin(pi t / 4) / t^2 for the distance t from the position to the tap, normalised to sum
- * 1 (the factor sin(pi k / 32) that every tap shares is left out); fraction 0 takes the pixel */
-INLINE void lanczos4_coeffs(const int k, float c[8]) {
-    if (k == 0) {
-        for (int i = 0; i < 8; ++i) c[i] = i == 3 ? 1.0f : 0.0f;
-        return;
-    }
-    const float s45 = 0.70710678118654752f;
-    const float cs[8][2] = {{1.0f, 0.0f}, {-s45, -s45}, {0.0f, 1.0f}, {s45, -s45},
-                            {-1.0f, 0.0f}, {s45, s45}, {0.0f, -1.0f}, {-s45, s45}};
-    const float x = (float)k * (1.0f / 32.0f);
-    const float y0 = -(x + 3.0f) * (M_PI_F * 0.25f);
-    const float s0 = sin(y0), c0 = cos(y0);
-    float sum = 0.0f;
-    for (int i = 0; i < 8; ++i) {
-        const float y = -(x + (float)(3 - i)) * (M_PI_F * 0.25f);
-        c[i] = (cs[i][0] * s0 + cs[i][1] * c0) / (y * y);
-        sum += c[i];
-    }
-    const float inv = 1.0f / sum;
-    for (int i = 0; i < 8; ++i) c[i] *= inv;
-}
+/* OpenCV's Lanczos-4 weights (imgproc's interpolateLanczos4) at fraction k / 32, k = 0 .. 31, of
+ * the taps at x0 - 3 .. x0 + 4: sin(pi t) sin(pi t / 4) / t^2 for the distance t from the position
+ * to the tap, computed in double, normalised to sum 1 and rounded to float (fraction 0 takes the
+ * pixel itself); a table, since sin and cos per sample doubled the sampler's time on a CPU.  The
+ * kernels' tests compare the sampling with cv2.remap's. */
+__constant float LANCZOS4_TAB[32][8] = {
+    {0.0f, 0.0f, 0.0f, 1.0f,
+     0.0f, 0.0f, 0.0f, 0.0f},
+    {-2.9810278e-3f, 9.62481e-3f, -2.7052572e-2f, 9.982653e-1f,
+     2.9186774e-2f, -1.0245609e-2f, 3.2642935e-3f, -6.189258e-5f},
+    {-5.6608217e-3f, 1.8562486e-2f, -5.188946e-2f, 9.930771e-1f,
+     6.040726e-2f, -2.103491e-2f, 6.7886175e-3f, -2.502084e-4f},
+    {-8.02671e-3f, 2.675789e-2f, -7.444909e-2f, 9.844779e-1f,
+     9.354314e-2f, -3.2280616e-2f, 1.0544587e-2f, -5.6705927e-4f},
+    {-1.0071198e-2f, 3.4167126e-2f, -9.468974e-2f, 9.725335e-1f,
+     1.2845916e-1f, -4.3885775e-2f, 1.4498807e-2f, -1.0120017e-3f},
+    {-1.1791785e-2f, 4.0757455e-2f, -1.1258936e-1f, 9.5733285e-1f,
+     1.6500413e-1f, -5.57444e-2f, 1.861307e-2f, -1.58195e-3f},
+    {-1.3190699e-2f, 4.6507046e-2f, -1.28145e-1f, 9.3898547e-1f,
+     2.0301189e-1f, -6.774213e-2f, 2.2844613e-2f, -2.2711284e-3f},
+    {-1.4274589e-2f, 5.1404618e-2f, -1.4137214e-1f, 9.176212e-1f,
+     2.4230257e-1f, -7.9757065e-2f, 2.714645e-2f, -3.0710634e-3f},
+    {-1.5054175e-2f, 5.5448987e-2f, -1.523039e-1f, 8.9338857e-1f,
+     2.8268394e-1f, -9.1660574e-2f, 3.146775e-2f, -3.970616e-3f},
+    {-1.5543843e-2f, 5.8648467e-2f, -1.6098998e-1f, 8.6645293e-1f,
+     3.2395247e-1f, -1.03318244e-1f, 3.5754282e-2f, -4.956054e-3f},
+    {-1.5761226e-2f, 6.102027e-2f, -1.674955e-1f, 8.3699465e-1f,
+     3.658949e-1f, -1.14590876e-1f, 3.99489e-2f, -6.011165e-3f},
+    {-1.5726764e-2f, 6.2589765e-2f, -1.7189984e-1f, 8.052081e-1f,
+     4.082896e-1f, -1.253355e-1f, 4.399208e-2f, -7.1174065e-3f},
+    {-1.5463231e-2f, 6.3389726e-2f, -1.7429528e-1f, 7.71299e-1f,
+     4.509078e-1f, -1.3540645e-1f, 4.7822513e-2f, -8.254092e-3f},
+    {-1.4995287e-2f, 6.3459545e-2f, -1.7478575e-1f, 7.354837e-1f,
+     4.9351525e-1f, -1.4465652e-1f, 5.137773e-2f, -9.39862e-3f},
+    {-1.4349009e-2f, 6.28444e-2f, -1.7348535e-1f, 6.9798654e-1f,
+     5.358735e-1f, -1.5293816e-1f, 5.4594737e-2f, -1.0526729e-2f},
+    {-1.3551444e-2f, 6.1594497e-2f, -1.705171e-1f, 6.59039e-1f,
+     5.777416e-1f, -1.6010465e-1f, 5.74108e-2f, -1.1612795e-2f},
+    {-1.2630151e-2f, 5.9764087e-2f, -1.6601135e-1f, 6.188774e-1f,
+     6.188774e-1f, -1.6601135e-1f, 5.9764087e-2f, -1.2630151e-2f},
+    {-1.1612795e-2f, 5.74108e-2f, -1.6010465e-1f, 5.777416e-1f,
+     6.59039e-1f, -1.705171e-1f, 6.1594497e-2f, -1.3551444e-2f},
+    {-1.0526729e-2f, 5.4594737e-2f, -1.5293816e-1f, 5.358735e-1f,
+     6.9798654e-1f, -1.7348535e-1f, 6.28444e-2f, -1.4349009e-2f},
+    {-9.39862e-3f, 5.137773e-2f, -1.4465652e-1f, 4.9351525e-1f,
+     7.354837e-1f, -1.7478575e-1f, 6.3459545e-2f, -1.4995287e-2f},
+    {-8.254092e-3f, 4.7822513e-2f, -1.3540645e-1f, 4.509078e-1f,
+     7.71299e-1f, -1.7429528e-1f, 6.3389726e-2f, -1.5463231e-2f},
+    {-7.1174065e-3f, 4.399208e-2f, -1.253355e-1f, 4.082896e-1f,
+     8.052081e-1f, -1.7189984e-1f, 6.2589765e-2f, -1.5726764e-2f},
+    {-6.011165e-3f, 3.99489e-2f, -1.14590876e-1f, 3.658949e-1f,
+     8.3699465e-1f, -1.674955e-1f, 6.102027e-2f, -1.5761226e-2f},
+    {-4.956054e-3f, 3.5754282e-2f, -1.03318244e-1f, 3.2395247e-1f,
+     8.6645293e-1f, -1.6098998e-1f, 5.8648467e-2f, -1.5543843e-2f},
+    {-3.970616e-3f, 3.146775e-2f, -9.1660574e-2f, 2.8268394e-1f,
+     8.9338857e-1f, -1.523039e-1f, 5.5448987e-2f, -1.5054175e-2f},
+    {-3.0710634e-3f, 2.714645e-2f, -7.9757065e-2f, 2.4230257e-1f,
+     9.176212e-1f, -1.4137214e-1f, 5.1404618e-2f, -1.4274589e-2f},
+    {-2.2711284e-3f, 2.2844613e-2f, -6.774213e-2f, 2.0301189e-1f,
+     9.3898547e-1f, -1.28145e-1f, 4.6507046e-2f, -1.3190699e-2f},
+    {-1.58195e-3f, 1.861307e-2f, -5.57444e-2f, 1.6500413e-1f,
+     9.5733285e-1f, -1.1258936e-1f, 4.0757455e-2f, -1.1791785e-2f},
+    {-1.0120017e-3f, 1.4498807e-2f, -4.3885775e-2f, 1.2845916e-1f,
+     9.725335e-1f, -9.468974e-2f, 3.4167126e-2f, -1.0071198e-2f},
+    {-5.6705927e-4f, 1.0544587e-2f, -3.2280616e-2f, 9.354314e-2f,
+     9.844779e-1f, -7.444909e-2f, 2.675789e-2f, -8.02671e-3f},
+    {-2.502084e-4f, 6.7886175e-3f, -2.103491e-2f, 6.040726e-2f,
+     9.930771e-1f, -5.188946e-2f, 1.8562486e-2f, -5.6608217e-3f},
+    {-6.189258e-5f, 3.2642935e-3f, -1.0245609e-2f, 2.9186774e-2f,
+     9.982653e-1f, -2.7052572e-2f, 9.62481e-3f, -2.9810278e-3f}
+};
 
 /* remap's Lanczos-4 cell of position m on an axis of n pixels: (the tap block's centre pixel x0,
  * the fraction in 1/32 pixels), m * 32 rounded half to even; NaN and +inf take the last pixel,
@@ -69,9 +117,7 @@ INLINE int2 lanczos_cell(const float m, const int n) {
 /* img's colour [H, W, 4] (.xyz) at (mx, my) by Lanczos-4, border replicated */
 INLINE float3 sample_rgb_lanczos4(__global const float4 *img, const int W, const int H, const float mx, const float my) {
     const int2 cx_ = lanczos_cell(mx, W), cy_ = lanczos_cell(my, H);
-    float cx[8], cy[8];
-    lanczos4_coeffs(cx_.y, cx);
-    lanczos4_coeffs(cy_.y, cy);
+    __constant const float *cx = LANCZOS4_TAB[cx_.y], *cy = LANCZOS4_TAB[cy_.y];
     int xs[8];
     for (int i = 0; i < 8; ++i) xs[i] = clampi(cx_.x - 3 + i, W - 1);
     float3 sum = (float3)(0.0f);
