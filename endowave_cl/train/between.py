@@ -91,9 +91,11 @@ from .config import FUSE_MODES, PATHS, S_DISTRIBUTIONS, between_flow_methods  # 
 from .device_losses import device_targets, prepare_targets
 
 
-# how the frames are sampled between pixels (warp.SAMPLERS), in every warp and push of the target:
-# bicubically (bilinear sampling averages neighbouring pixels at half-pixel offsets and teaches a
-# blurred frame, research/QUALITY.md finding 10; the tool masks are sampled bilinearly)
+# how the frames are sampled between pixels (warp.SAMPLERS), in every warp and push of the target,
+# host and device: bicubically (bilinear sampling averages neighbouring pixels at half-pixel offsets
+# and teaches a blurred frame, research/QUALITY.md finding 10; the tool masks are sampled
+# bilinearly).  "lanczos" is the other sampler the device target has: a sharper teacher, level for
+# the model on the real scenes at twice the sampling cost (finding 53)
 SAMPLER = "cubic"
 # fused_interpolation: half-width (px) of the box over which a hypothesis's two warps are compared,
 # and the disagreement (sum of the three channels' absolute differences, images in [0, 1]) at which
