@@ -5,8 +5,8 @@
  * acc0, acc1 [H, W, 3]: between_splat's fixed-point sums (reach, reach x back) of frame 0's and
  * frame 1's paths.  Per pixel q and frame f: reach_f = the summed weight; back_f = the summed
  * displacement / reach_f where reach_f > SPLAT_MIN_WEIGHT (else 0), where q's colour comes from;
- * pushed_f = img_f ([H, W, 4], its colour) sampled bicubically at q + back_f (between_sample.h),
- * clipped to [lo_f, hi_f].
+ * pushed_f = img_f ([H, W, 4], its colour) sampled at q + back_f (between_sample.h: bicubic, or
+ * Lanczos-4 with -DLANCZOS4), clipped to [lo_f, hi_f].
  * out [H, W, 3] = (sum_f a_f min(reach_f, 1) pushed_f) / (sum_f a_f min(reach_f, 1)) over the
  * frames with reach_f > SPLAT_MIN_WEIGHT (a_0 = wa = 1 - s, a_1 = wb = s), or fill where that sum
  * is not above SPLAT_MIN_WEIGHT.  No adjoint. */

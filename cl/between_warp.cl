@@ -4,16 +4,16 @@
  * Two frames img0, img1 [H, W, 4] (RGB and tool mask: ops/between.py frame_on_device) are sampled at p - g0(p) and p - g1(p), where each path
  * g [H, W, 2] is ca A + cb B (the second term only with nb = 1; A, B read with a per-pixel pitch
  * and a channel offset, so that a render's flow channels serve as they lie in its feature image).
- * As OpenCV's remap (which the host path calls): the border is replicated, the frames are sampled
- * bicubically (a = -0.75, the result clipped to [lo, hi], each frame's own range), the tool masks
- * bilinearly.
+ * As OpenCV's remap (which the host path calls): the border is replicated, the frames' colour is
+ * sampled bicubically (a = -0.75; Lanczos-4 when built with -DLANCZOS4: between_sample.h) and
+ * clipped to [lo, hi], each frame's own range, the tool masks bilinearly.
  *
  * Outputs per pixel: blend [H, W, 3] = wa W0 + wb W1 (wa = 1 - s and wb = s, rounded on the host); diff [H, W] = sum_c |W0 - W1|;
  * ok [H, W] = 1 where both warped masks exceed 0.5 (a frame without a mask counts as tissue).
  * No adjoint: the target is a constant of the loss. */
 #pragma OPENCL FP_CONTRACT OFF
 
-#include "between_sample.h"   /* remap's sampling: bicubic colour, bilinear mask; paths */
+#include "between_sample.h"   /* remap's sampling: bicubic (or Lanczos-4) colour, bilinear mask; paths */
 
 __kernel void between_warp(__global const float4 *img0, __global const float4 *img1,
                            const float lo0, const float hi0, const float lo1, const float hi1,
